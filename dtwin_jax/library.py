@@ -1,0 +1,319 @@
+"""Candidate library: named terms evaluated on states (and inputs) to form the design matrix.
+
+States are `x1..xm`, inputs `u1..un`. A library spec is a comma-separated list of families:
+
+| family   | terms                                                  |
+|----------|--------------------------------------------------------|
+| `poly:P` | `1` and every monomial of total degree 1..P in states  |
+| `sign`   | `sign(xi)`                                             |
+| `abs`    | `Abs(xi)`                                              |
+| `xabs`   | `xi*Abs(xj)` (all i, j)                                |
+| `exp`    | `exp(-xi)`                                             |
+| `expx`   | `xj*exp(-xi)` (all i, j)                               |
+| `expxx`  | `exp(-xi*xj)` (i <= j)                                 |
+| `sin`    | `sin(xi)`                                              |
+| `cos`    | `cos(xi)`                                              |
+| `input`  | `u1..un`                                               |
+
+Every term name is the canonical SymPy string of the term: `str(sympy.sympify(name)) == name`.
+"""
+
+import functools
+import itertools
+import re
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import sympy
+
+from dtwin_jax.errors import DataError
+
+DEFAULT_LIBRARY = "poly:6,sign,abs,xabs,exp,expxx,sin,cos,input"
+FAMILIES = ("poly", "sign", "abs", "xabs", "exp", "expx", "expxx", "sin", "cos", "input")
+_KNOWN = "poly:P, " + ", ".join(FAMILIES[1:])
+
+# Names are parsed with exactly these functions, whatever else sympify knows.
+_FUNCTIONS = {"sign": sympy.sign, "Abs": sympy.Abs, "exp": sympy.exp, "sin": sympy.sin, "cos": sympy.cos}
+
+
+def symbols(num_states: int, num_inputs: int) -> tuple[tuple[sympy.Symbol, ...], tuple[sympy.Symbol, ...]]:
+    """`(x1..xm), (u1..un)` as plain SymPy symbols (no assumptions, so they equal `sympify`'s)."""
+    xs = tuple(sympy.Symbol(f"x{i + 1}") for i in range(num_states))
+    us = tuple(sympy.Symbol(f"u{i + 1}") for i in range(num_inputs))
+    return xs, us
+
+
+def to_sympy(name: str) -> sympy.Expr:
+    """Parse a term name into a SymPy expression in `x1..xm`, `u1..un`."""
+    try:
+        return sympy.sympify(name, locals=_FUNCTIONS)
+    except (sympy.SympifyError, SyntaxError, TypeError) as e:
+        raise DataError(f"cannot parse library term {name!r}: {type(e).__name__}") from None
+
+
+class Library(eqx.Module):
+    """A fixed list of named candidate terms; `lib(x, u)` is the design matrix.
+
+    Only static (hashable) fields, so a `Library` can be closed over or passed as a
+    static argument to `jax.jit`.
+
+    **Fields:**
+
+    - `names`: the `K` term names, canonical SymPy strings.
+    - `num_states`, `num_inputs`: `m` and `n`.
+    - `spec`: the library spec this was parsed from.
+    - `blocks`: one `(family, indices)` per family in spec order; `indices[k]` is the
+      exponent tuple (length `m`) of a monomial for `poly`, else the 0-based state
+      (or input) indices `(i,)` or `(i, j)` of the term.
+    """
+
+    names: tuple[str, ...] = eqx.field(static=True)
+    num_states: int = eqx.field(static=True)
+    num_inputs: int = eqx.field(static=True)
+    spec: str = eqx.field(static=True)
+    blocks: tuple[tuple[str, tuple[tuple[int, ...], ...]], ...] = eqx.field(static=True)
+
+    @property
+    def K(self) -> int:
+        """Number of terms."""
+        return len(self.names)
+
+    @property
+    def uses_inputs(self) -> bool:
+        return any(family == "input" for family, _ in self.blocks)
+
+    def __call__(self, x, u=None):
+        """Design matrix.
+
+        **Arguments:**
+
+        - `x`: states, shape `(..., m)`.
+        - `u`: inputs, shape `(..., n)`; needed only if the library has the `input` family.
+
+        **Returns:** `L`, shape `(..., K)`, float64.
+        """
+        x = jnp.asarray(x, dtype=jnp.float64)
+        if x.ndim < 1 or x.shape[-1] != self.num_states:
+            raise DataError(f"library expects states of shape (..., {self.num_states}), got {x.shape}")
+        if self.uses_inputs:
+            if u is None:
+                raise DataError("library has input terms but no inputs u were given")
+            u = jnp.asarray(u, dtype=jnp.float64)
+            if u.ndim < 1 or u.shape[-1] != self.num_inputs:
+                raise DataError(f"library expects inputs of shape (..., {self.num_inputs}), got {u.shape}")
+        return _design(self, x, u)
+
+    def eval_single(self, x, u=None):
+        """One sample: `x` shape `(m,)`, `u` shape `(n,)` -> shape `(K,)`."""
+        return self(x, u)
+
+
+# Jitted so eager calls compile once per library and shape, not once per primitive.
+@functools.partial(jax.jit, static_argnums=0)
+def _design(lib, x, u):
+    cols = [_eval_block(family, np.asarray(idx, dtype=np.intp), x, u) for family, idx in lib.blocks]
+    return jnp.concatenate(cols, axis=-1)
+
+
+def _eval_block(family, idx, x, u):
+    """Columns of one family; `idx` as in `Library.blocks`, shape `(k, m)` or `(k, 1|2)`."""
+    if family == "poly":
+        degree = int(idx.sum(axis=1).max())
+        # Powers x**0..x**P by repeated products: exact x**0 == 1 and no pow() calls.
+        powers = [jnp.ones_like(x), x]
+        for _ in range(degree - 1):
+            powers.append(powers[-1] * x)
+        powers = jnp.stack(powers[: degree + 1], axis=-1)  # (..., m, P+1)
+        m = x.shape[-1]
+        gathered = powers[..., np.arange(m)[None, :], idx]  # (..., k, m)
+        return jnp.prod(gathered, axis=-1)
+    i = idx[:, 0]
+    if family == "sign":
+        return jnp.sign(x[..., i])
+    if family == "abs":
+        return jnp.abs(x[..., i])
+    if family == "exp":
+        return jnp.exp(-x[..., i])
+    if family == "sin":
+        return jnp.sin(x[..., i])
+    if family == "cos":
+        return jnp.cos(x[..., i])
+    if family == "input":
+        return u[..., i]
+    j = idx[:, 1]
+    if family == "xabs":
+        return x[..., i] * jnp.abs(x[..., j])
+    if family == "expx":
+        return jnp.exp(-x[..., i]) * x[..., j]
+    if family == "expxx":
+        return jnp.exp(-x[..., i] * x[..., j])
+    raise AssertionError(family)
+
+
+def _family_terms(family, degree, xs, us):
+    """`(indices, raw names)` of one family; names are canonicalised by the caller."""
+    m = len(xs)
+    if family == "poly":
+        idx, raw = [(0,) * m], ["1"]
+        for d in range(1, degree + 1):
+            for combo in itertools.combinations_with_replacement(range(m), d):
+                e = tuple(combo.count(k) for k in range(m))
+                idx.append(e)
+                raw.append(str(sympy.Mul(*(xs[k] ** e[k] for k in range(m)))))
+        return idx, raw
+    ii = [(i,) for i in range(m)]
+    pairs = [(i, j) for i in range(m) for j in range(m)]
+    upper = [(i, j) for i in range(m) for j in range(i, m)]
+    table = {
+        "sign": (ii, "sign(x{i})"),
+        "abs": (ii, "Abs(x{i})"),
+        "xabs": (pairs, "x{i}*Abs(x{j})"),
+        "exp": (ii, "exp(-x{i})"),
+        "expx": (pairs, "exp(-x{i})*x{j}"),
+        "expxx": (upper, "exp(-x{i}*x{j})"),
+        "sin": (ii, "sin(x{i})"),
+        "cos": (ii, "cos(x{i})"),
+        "input": ([(i,) for i in range(len(us))], "u{i}"),
+    }
+    idx, fmt = table[family]
+    return idx, [fmt.format(i=t[0] + 1, j=t[-1] + 1) for t in idx]
+
+
+def _parse_family(token):
+    """`(family, degree)` of one spec token; degree is None except for poly."""
+    name, sep, arg = token.partition(":")
+    if name == "poly":
+        if not sep or not re.fullmatch(r"\+?\d+", arg.strip()):
+            raise DataError(f"library family {token!r} needs an integer degree, e.g. 'poly:3'")
+        degree = int(arg)
+        if degree < 1:
+            raise DataError(f"library family {token!r} needs a degree >= 1")
+        return "poly", degree
+    if sep or name not in FAMILIES:
+        raise DataError(f"unknown library family {token!r} (known: {_KNOWN})")
+    return name, None
+
+
+def parse_library(spec: str, num_states: int, num_inputs: int) -> Library:
+    """Build the library of a spec such as `"poly:3,sign,abs"` for `m` states, `n` inputs."""
+    if not isinstance(num_states, (int, np.integer)) or num_states < 1:
+        raise DataError(f"library needs num_states >= 1, got {num_states!r}")
+    if not isinstance(num_inputs, (int, np.integer)) or num_inputs < 0:
+        raise DataError(f"library needs num_inputs >= 0, got {num_inputs!r}")
+    tokens = [t.strip() for t in str(spec).split(",")]
+    if not any(tokens):
+        raise DataError("library spec is empty")
+    if not all(tokens):
+        raise DataError(f"library spec {spec!r} has an empty family")
+    xs, us = symbols(int(num_states), int(num_inputs))
+    blocks, names, seen = [], [], set()
+    for token in tokens:
+        family, degree = _parse_family(token)
+        if family == "input" and num_inputs == 0:
+            raise DataError("library family 'input' needs measured inputs")
+        idx, raw = _family_terms(family, degree, xs, us)
+        for r in raw:
+            # Monomials are already str(sympy.Mul); the rest go through SymPy's printer.
+            name = r if family == "poly" else str(to_sympy(r))
+            if name in seen:
+                raise DataError(f"library term {name!r} appears twice in spec {spec!r}")
+            seen.add(name)
+            names.append(name)
+        blocks.append((family, tuple(tuple(t) for t in idx)))
+    return Library(
+        names=tuple(names),
+        num_states=int(num_states),
+        num_inputs=int(num_inputs),
+        spec=",".join(tokens),
+        blocks=tuple(blocks),
+    )
+
+
+def default_library(num_states: int, num_inputs: int) -> Library:
+    """The paper's library `DEFAULT_LIBRARY`, without `input` when there are no inputs."""
+    spec = DEFAULT_LIBRARY
+    if num_inputs == 0:
+        spec = ",".join(t for t in spec.split(",") if t != "input")
+    return parse_library(spec, num_states, num_inputs)
+
+
+def column_scales(gram_diag, n):
+    """RMS of each library column, `sqrt(diag(L^T L) / N)`, from sufficient statistics.
+
+    **Arguments:**
+
+    - `gram_diag`: `diag(L^T L)`, shape `(K,)`.
+    - `n`: number of rows `N` summed into it.
+
+    **Returns:** scales, shape `(K,)`, in the physical units of each column.
+
+    The sampler standardises columns by these scales internally (`L / scale`), so every
+    reported coefficient is divided back into physical units:
+    `theta_physical = beta_scaled / scale`.
+    """
+    return jnp.sqrt(jnp.asarray(gram_diag, dtype=jnp.float64) / n)
+
+
+def _columns(names, plural, singular, limit=5):
+    """`"library columns 'a', 'b' <plural>"`, or the singular form for one name."""
+    if len(names) == 1:
+        return f"library column {names[0]!r} {singular}"
+    shown = ", ".join(repr(n) for n in names[:limit])
+    if len(names) > limit:
+        shown += f" and {len(names) - limit} more"
+    return f"library columns {shown} {plural}"
+
+
+def check_columns(L, names, *, rtol: float = 1e-10) -> None:
+    """Raise `DataError` if the design matrix cannot identify its terms.
+
+    Checks, in order: non-finite entries; all-zero columns (max |col| == 0); pairs of
+    columns equal up to a nonzero factor, i.e. after scaling each to unit RMS,
+    `max|c_i - c_j| <= rtol` or `max|c_i + c_j| <= rtol`.
+
+    **Arguments:**
+
+    - `L`: design matrix, shape `(N, K)`.
+    - `names`: the `K` term names.
+    - `rtol`: duplicate tolerance on unit-RMS columns.
+    """
+    L = np.asarray(L, dtype=np.float64)
+    names = tuple(names)
+    if L.ndim != 2 or L.shape[1] != len(names):
+        raise DataError(f"library matrix has shape {L.shape}, expected (N, {len(names)})")
+    n, k = L.shape
+    if n == 0:
+        raise DataError("library matrix has no rows")
+    bad = np.flatnonzero(~np.isfinite(L).all(axis=0))
+    if bad.size:
+        raise DataError(_columns([names[i] for i in bad], "have non-finite values", "has non-finite values"))
+    maxabs = np.maximum(L.max(axis=0), -L.min(axis=0))  # no |L| temporary
+    zero = np.flatnonzero(maxabs == 0.0)
+    if zero.size:
+        raise DataError(_columns([names[i] for i in zero], "are all zero on these data", "is all zero on these data"))
+
+    # Cosine similarity of columns, accumulated in row chunks of L / maxabs (no overflow,
+    # no full copy). max|c_i -+ c_j| <= rtol implies 1 - |cos| <= rtol**2 / 2, so the
+    # Gram only short-lists candidates (with slack for its rounding); each is then
+    # confirmed with the exact max-abs test.
+    gram = np.zeros((k, k))
+    chunk = max(1, 2**20 // k)
+    for start in range(0, n, chunk):
+        block = L[start : start + chunk] / maxabs
+        gram += block.T @ block
+    norm = np.sqrt(np.diag(gram))
+    cos = gram / np.outer(norm, norm)
+    slack = max(rtol**2, 1e-9)
+    cand_i, cand_j = np.nonzero(np.triu(np.abs(cos) >= 1.0 - slack, k=1))
+    rms = norm / np.sqrt(n) * maxabs
+    pairs = []
+    for i, j in sorted(zip(cand_i.tolist(), cand_j.tolist()), key=lambda p: (p[1], p[0])):
+        ci, cj = L[:, i] / rms[i], L[:, j] / rms[j]
+        s = np.sign(cos[i, j])
+        if np.max(np.abs(ci - s * cj)) <= rtol:
+            pairs.append(f"{names[j]!r} and {names[i]!r}")
+    if pairs:
+        more = f" (also {'; '.join(pairs[1:4])}{'; ...' if len(pairs) > 4 else ''})" if len(pairs) > 1 else ""
+        raise DataError(f"library columns {pairs[0]} are duplicates on these data{more}")

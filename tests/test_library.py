@@ -1,0 +1,274 @@
+import math
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import sympy
+
+import dtwin_jax  # noqa: F401  (float64)
+from dtwin_jax.errors import DataError
+from dtwin_jax.library import (
+    DEFAULT_LIBRARY,
+    FAMILIES,
+    Library,
+    check_columns,
+    column_scales,
+    default_library,
+    parse_library,
+    symbols,
+    to_sympy,
+)
+
+
+def _data(m, n, N=200, seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.normal(size=(N, m)), rng.normal(size=(N, n))
+
+
+def _default_K(m, n):
+    # poly:6 (incl. '1') + sign, abs, exp, sin, cos + xabs (m^2) + expxx (i <= j) + input
+    return math.comb(m + 6, 6) + 5 * m + m * m + m * (m + 1) // 2 + n
+
+
+def test_constants():
+    assert DEFAULT_LIBRARY == "poly:6,sign,abs,xabs,exp,expxx,sin,cos,input"
+    assert FAMILIES == ("poly", "sign", "abs", "xabs", "exp", "expx", "expxx", "sin", "cos", "input")
+
+
+@pytest.mark.parametrize("m, K", [(1, 15), (2, 46), (3, 115), (4, 257)])
+def test_default_counts(m, K):
+    lib = default_library(m, 1)
+    assert lib.K == K == _default_K(m, 1)
+    assert len(set(lib.names)) == lib.K
+    assert default_library(m, 0).K == K - 1
+    assert "u1" not in default_library(m, 0).names
+
+
+def test_poly_and_order():
+    assert parse_library("poly:6", 2, 1).K == 28
+    lib = parse_library("poly:3", 2, 0)
+    assert lib.names == (
+        "1", "x1", "x2", "x1**2", "x1*x2", "x2**2", "x1**3", "x1**2*x2", "x1*x2**2", "x2**3",
+    )  # fmt: skip
+    lib = parse_library("sign,xabs,expx,expxx,input", 2, 2)
+    assert lib.names == (
+        "sign(x1)", "sign(x2)",
+        "x1*Abs(x1)", "x1*Abs(x2)", "x2*Abs(x1)", "x2*Abs(x2)",
+        "x1*exp(-x1)", "x2*exp(-x1)", "x1*exp(-x2)", "x2*exp(-x2)",
+        "exp(-x1**2)", "exp(-x1*x2)", "exp(-x2**2)",
+        "u1", "u2",
+    )  # fmt: skip
+    # Monomial names are exactly sympy's printing of the product.
+    x1, x2, x3 = symbols(3, 0)[0]
+    names = parse_library("poly:3", 3, 0).names
+    for expr in (x1**2 * x2, x1 * x2**2, x2**3, x1 * x2 * x3, x3**3):
+        assert str(expr) in names
+
+
+def test_names_round_trip():
+    lib = parse_library(DEFAULT_LIBRARY + ",expx", 3, 2)
+    for name in lib.names:
+        assert str(sympy.sympify(name)) == name
+        assert str(to_sympy(name)) == name
+        assert to_sympy(name) == sympy.sympify(name)
+
+
+def test_named_columns():
+    x, u = _data(3, 1)
+    lib = parse_library("poly:3,sign,abs,xabs,exp,expx,expxx,sin,cos,input", 3, 1)
+    L = np.asarray(lib(x, u))
+    assert L.shape == (200, lib.K) and L.dtype == np.float64
+    col = {name: L[:, k] for k, name in enumerate(lib.names)}
+    x1, x2, x3 = x.T
+    expected = {
+        "1": np.ones(200),
+        "x1**2*x2": x1**2 * x2,
+        "x1*x2*x3": x1 * x2 * x3,
+        "x3**3": x3**3,
+        "x1*Abs(x2)": x1 * np.abs(x2),
+        "x2*Abs(x2)": x2 * np.abs(x2),
+        "exp(-x1*x2)": np.exp(-x1 * x2),
+        "exp(-x3**2)": np.exp(-(x3**2)),
+        "x1*exp(-x2)": np.exp(-x2) * x1,
+        "exp(-x3)": np.exp(-x3),
+        "sign(x2)": np.sign(x2),
+        "Abs(x3)": np.abs(x3),
+        "sin(x1)": np.sin(x1),
+        "cos(x3)": np.cos(x3),
+        "u1": u[:, 0],
+    }
+    for name, want in expected.items():
+        np.testing.assert_allclose(col[name], want, rtol=1e-14, atol=0, err_msg=name)
+
+
+def test_columns_match_lambdify():
+    m, n = 3, 2
+    x, u = _data(m, n, N=100, seed=1)
+    lib = parse_library(DEFAULT_LIBRARY + ",expx", m, n)
+    L = np.asarray(lib(x, u))
+    xs, us = symbols(m, n)
+    f = sympy.lambdify(xs + us, [to_sympy(name) for name in lib.names], modules="numpy")
+    want = np.stack([np.broadcast_to(c, (100,)) for c in f(*x.T, *u.T)], axis=1)
+    np.testing.assert_allclose(L, want, rtol=1e-12, atol=0)
+
+
+def test_jit_vmap_single():
+    lib = default_library(2, 1)
+    x, u = _data(2, 1, N=30)
+    L = lib(x, u)
+    np.testing.assert_array_equal(jax.jit(lib)(x, u), L)
+    # Closed over, and as a static argument (hashable).
+    np.testing.assert_array_equal(jax.jit(lambda x, u: lib(x, u))(x, u), L)
+    f = jax.jit(lambda lib, x, u: lib(x, u), static_argnums=0)
+    np.testing.assert_array_equal(f(default_library(2, 1), x, u), L)
+    assert hash(lib) == hash(default_library(2, 1)) and lib == default_library(2, 1)
+    # Records axis: (R, N, m) -> (R, N, K).
+    xr, ur = x.reshape(3, 10, 2), u.reshape(3, 10, 1)
+    Lr = jax.vmap(lib)(xr, ur)
+    assert Lr.shape == (3, 10, lib.K)
+    np.testing.assert_allclose(Lr.reshape(30, -1), L, rtol=1e-15)
+    np.testing.assert_allclose(lib(xr, ur).reshape(30, -1), L, rtol=1e-15)
+    # One sample.
+    single = jax.jit(lib.eval_single)(x[7], u[7])
+    assert single.shape == (lib.K,)
+    np.testing.assert_allclose(single, L[7], rtol=1e-15)
+    # Gradients (used inside ODE right-hand sides) are finite away from the kinks.
+    g = jax.jacfwd(lib.eval_single)(jnp.array([0.3, -0.7]), jnp.array([0.2]))
+    assert g.shape == (lib.K, 2) and np.isfinite(g).all()
+
+
+def test_monomial_gradients_at_zero():
+    # ODE right-hand sides are often differentiated at states that are exactly zero.
+    lib = parse_library("poly:4", 2, 0)
+    xs, _ = symbols(2, 0)
+    at = {xs[0]: 0.0, xs[1]: 0.5}
+    want = np.array([[float(sympy.diff(to_sympy(n), s).subs(at)) for s in xs] for n in lib.names])
+    x0 = jnp.array([0.0, 0.5])
+    np.testing.assert_allclose(jax.jacfwd(lib.eval_single)(x0), want, rtol=1e-15, atol=0)
+    np.testing.assert_allclose(jax.jacrev(lib.eval_single)(x0), want, rtol=1e-15, atol=0)
+
+
+def test_no_inputs_needed():
+    lib = parse_library("poly:2,sin", 2, 1)
+    x, _ = _data(2, 1, N=5)
+    assert lib(x).shape == (5, 6 + 2)
+    with pytest.raises(DataError, match="no inputs"):
+        parse_library("poly:2,input", 2, 1)(x)
+    with pytest.raises(DataError, match=r"\(\.\.\., 2\)"):
+        lib(np.zeros((5, 3)))
+
+
+@pytest.mark.parametrize(
+    "spec, n, match",
+    [
+        ("poly:2,foo", 1, r"unknown library family 'foo' \(known: poly:P, sign, abs, xabs, exp, expx"),
+        ("sign:2", 1, "unknown library family 'sign:2'"),
+        ("Poly:2", 1, "unknown library family"),
+        ("poly", 1, "integer degree"),
+        ("poly:", 1, "integer degree"),
+        ("poly:x", 1, "integer degree"),
+        ("poly:2.5", 1, "integer degree"),
+        ("poly:-1", 1, "integer degree"),
+        ("poly:0", 1, "degree >= 1"),
+        ("", 1, "empty"),
+        (" , ", 1, "empty"),
+        ("poly:2,,sign", 1, "empty family"),
+        ("poly:2,poly:3", 1, "'1' appears twice"),
+        ("sign,sign", 1, "'sign\\(x1\\)' appears twice"),
+        ("poly:2,input", 0, "library family 'input' needs measured inputs"),
+    ],
+)
+def test_parse_errors(spec, n, match):
+    with pytest.raises(DataError, match=match):
+        parse_library(spec, 2, n)
+
+
+def test_parse_misc():
+    assert parse_library(" poly:2 , sin ", 1, 0).names == ("1", "x1", "x1**2", "sin(x1)")
+    assert parse_library("poly:2,sin", 1, 0).spec == "poly:2,sin"
+    assert default_library(2, 0).spec == "poly:6,sign,abs,xabs,exp,expxx,sin,cos"
+    with pytest.raises(DataError, match="num_states"):
+        parse_library("poly:2", 0, 0)
+    with pytest.raises(DataError, match="num_inputs"):
+        parse_library("poly:2", 1, -1)
+    with pytest.raises(DataError, match="cannot parse"):
+        to_sympy("x1 +* )")
+    assert isinstance(parse_library("sin", 1, 0), Library)
+
+
+def test_check_columns_passes_on_random_data():
+    x, u = _data(4, 2, N=2000, seed=3)
+    lib = default_library(4, 2)
+    check_columns(lib(x, u), lib.names)
+
+
+def test_check_columns_duplicates():
+    x, u = _data(3, 1, seed=4)
+    x[:, 2] = np.abs(x[:, 2]) + 0.1  # x3 > 0: Abs(x3) == x3 and sign(x3) == 1
+    lib = parse_library("poly:1,abs", 3, 1)
+    with pytest.raises(DataError, match=r"^library columns 'Abs\(x3\)' and 'x3' are duplicates on these data$"):
+        check_columns(lib(x, u), lib.names)
+    lib = default_library(3, 1)
+    with pytest.raises(DataError, match=r"^library columns 'sign\(x3\)' and '1' are duplicates on these data \(also"):
+        check_columns(lib(x, u), lib.names)
+    # Duplicate up to a negative factor, and up to rounding.
+    L = np.stack([x[:, 0], x[:, 1], -2.5 * x[:, 0] * (1 + 1e-15)], axis=1)
+    with pytest.raises(DataError, match="'c' and 'a' are duplicates"):
+        check_columns(L, ["a", "b", "c"])
+    # Nearly but not exactly proportional columns are fine.
+    L[:, 2] = x[:, 0] + 1e-6 * x[:, 1]
+    check_columns(L, ["a", "b", "c"])
+
+
+def test_check_columns_zero_and_nonfinite():
+    x, u = _data(2, 1, seed=5)
+    lib = parse_library("poly:2,sin", 2, 1)
+    x0 = x.copy()
+    x0[:, 1] = 0.0
+    with pytest.raises(DataError, match=r"^library columns 'x2', 'x1\*x2', 'x2\*\*2', 'sin\(x2\)' are all zero"):
+        check_columns(lib(x0, u), lib.names)
+    x0[:, 0] = 0.0
+    five = r"'x1', 'x2', 'x1\*\*2', 'x1\*x2', 'x2\*\*2'"
+    with pytest.raises(DataError, match=rf"^library columns {five} and 2 more are all zero"):
+        check_columns(lib(x0, u), lib.names)
+    lib1 = parse_library("sin", 2, 0)
+    with pytest.raises(DataError, match=r"^library column 'sin\(x1\)' is all zero on these data$"):
+        check_columns(lib1(x0 + [0.0, 1.0]), lib1.names)
+    L = np.asarray(lib(x, u)).copy()
+    L[3, 4] = np.nan
+    L[5, 7] = np.inf
+    with pytest.raises(DataError, match=r"^library columns 'x1\*x2', 'sin\(x2\)' have non-finite values$"):
+        check_columns(L, lib.names)
+    # exp overflows for very negative states.
+    x[0, 0] = -800.0
+    lib = parse_library("exp", 2, 0)
+    with pytest.raises(DataError, match=r"^library column 'exp\(-x1\)' has non-finite values$"):
+        check_columns(lib(x), lib.names)
+    with pytest.raises(DataError, match="shape"):
+        check_columns(L, lib.names)
+
+
+def test_column_scales():
+    x, u = _data(3, 1, N=500, seed=6)
+    lib = default_library(3, 1)
+    L = np.asarray(lib(x, u))
+    scales = column_scales(np.diag(L.T @ L), L.shape[0])
+    np.testing.assert_allclose(scales, np.sqrt(np.mean(L**2, axis=0)), rtol=1e-12)
+    assert scales[lib.names.index("1")] == pytest.approx(1.0, rel=1e-14)
+
+
+def test_speed():
+    lib = default_library(4, 2)
+    x, u = _data(4, 2, N=1000, seed=7)
+    x, u = jnp.asarray(x), jnp.asarray(u)
+    f = jax.jit(lib)
+    f(x, u).block_until_ready()
+    reps = 20
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        f(x, u).block_until_ready()
+    dt = (time.perf_counter() - t0) / reps
+    print(f"default library m=4 n=2 N=1000 (K={lib.K}): {dt * 1e3:.2f} ms per call (jitted)")
+    assert dt < 0.05
