@@ -1,0 +1,156 @@
+"""Posterior summaries of spike-and-slab draws: inclusion probabilities, coefficients,
+diagnostics (via arviz) and equations."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import arviz as az
+import numpy as np
+
+__all__ = ["EquationPosterior", "format_equation", "format_coefficient"]
+
+
+@dataclass(frozen=True)
+class EquationPosterior:
+    """Draws for one regressed equation, in physical units.
+
+    ``theta`` is ``(chains, draws, K)`` with zeros where a term is excluded, ``gamma`` the
+    matching inclusion indicators, ``sigma2`` ``(chains, draws)`` the residual variance.
+    Coefficient statistics of a term are conditional on its inclusion (the coefficient of the
+    discovered term); for a term with PIP near 1 they equal the marginal ones.
+    """
+
+    state: str
+    kind: str  # "drift" or "diffusion"
+    names: tuple[str, ...]
+    gamma: np.ndarray
+    theta: np.ndarray
+    sigma2: np.ndarray
+    pip_threshold: float = 0.5
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def pip(self) -> np.ndarray:
+        """Posterior inclusion probability of every term, ``(K,)``."""
+        return self.gamma.mean(axis=(0, 1))
+
+    @property
+    def selected(self) -> np.ndarray:
+        """Terms with PIP above the threshold, ``(K,)`` bool."""
+        return self.pip > self.pip_threshold
+
+    def _conditional(self, k: int) -> np.ndarray:
+        draws = self.theta[..., k].ravel()
+        return draws[self.gamma[..., k].ravel()]
+
+    @property
+    def mean(self) -> np.ndarray:
+        """Posterior mean of each coefficient given inclusion (0 for never-included terms)."""
+        return np.array([_safe(np.mean, self._conditional(k)) for k in range(len(self.names))])
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.array([_safe(np.std, self._conditional(k)) for k in range(len(self.names))])
+
+    @property
+    def hdi_95(self) -> np.ndarray:
+        """95% highest-density interval of each coefficient given inclusion, ``(K, 2)``."""
+        if "hdi" not in self._cache:
+            out = np.full((len(self.names), 2), np.nan)
+            for k in np.flatnonzero(self.gamma.any(axis=(0, 1))):
+                draws = self._conditional(k)
+                if draws.size > 2:
+                    out[k] = np.asarray(az.hdi(draws, prob=0.95))
+            self._cache["hdi"] = out
+        return self._cache["hdi"]
+
+    @property
+    def coefficients(self) -> np.ndarray:
+        """Point estimate of the discovered perturbation: mean of selected terms, 0 elsewhere."""
+        return np.where(self.selected, self.mean, 0.0)
+
+    def rhat(self) -> np.ndarray:
+        """Rank-normalised split R-hat of each selected coefficient (arviz), ``(n_selected,)``."""
+        return np.array([_diag(az.rhat, self.theta[..., k]) for k in np.flatnonzero(self.selected)])
+
+    def ess_bulk(self) -> np.ndarray:
+        return np.array(
+            [_diag(az.ess, self.theta[..., k]) for k in np.flatnonzero(self.selected)]
+        )
+
+    def terms(self) -> list[dict]:
+        """Selected terms as formats.md writes them."""
+        pip, mean, std, hdi = self.pip, self.mean, self.std, self.hdi_95
+        return [
+            {
+                "expr": self.names[k],
+                "mean": float(mean[k]),
+                "std": float(std[k]),
+                "pip": float(pip[k]),
+                "hdi_95": [float(hdi[k, 0]), float(hdi[k, 1])],
+            }
+            for k in np.flatnonzero(self.selected)
+        ]
+
+    def to_json(self) -> dict:
+        return {
+            "state": self.state,
+            "kind": self.kind,
+            "terms": self.terms(),
+            "pip": {name: float(p) for name, p in zip(self.names, self.pip)},
+        }
+
+    def equation(self) -> str:
+        """``x2: -100000.1(±0.6) x1**3 + ...``."""
+        return format_equation(self.state, self.terms(), self.kind)
+
+    def to_arviz(self):
+        """The draws as an arviz DataTree (``theta`` and ``gamma`` over ``term``, ``sigma2``)."""
+        return az.from_dict(
+            {
+                "posterior": {
+                    "theta": self.theta,
+                    "gamma": self.gamma.astype(np.int8),
+                    "sigma2": self.sigma2,
+                }
+            },
+            dims={"theta": ["term"], "gamma": ["term"]},
+            coords={"term": list(self.names)},
+        )
+
+
+def _safe(fn, draws):
+    return float(fn(draws)) if draws.size else 0.0
+
+
+def _diag(fn, draws):
+    """An arviz diagnostic on ``(chains, draws)``; NaN where it is undefined (constant draws)."""
+    if np.ptp(draws) == 0.0:
+        return float("nan")
+    return float(fn(np.asarray(draws)))
+
+
+def format_coefficient(mean: float, std: float) -> str:
+    """``-100000.1(±0.6)``: the mean to the first significant digit of its std."""
+    if not math.isfinite(std) or std <= 0:
+        return f"{mean:.6g}"
+    decimals = min(max(0, -int(math.floor(math.log10(std)))), 12)
+    return f"{mean:.{decimals}f}(±{std:.{decimals}f})"
+
+
+def format_equation(state: str, terms: list[dict], kind: str = "drift") -> str:
+    label = f"{state}" if kind == "drift" else f"{state} [diffusion]"
+    if not terms:
+        return f"{label}: 0"
+    parts = []
+    for i, t in enumerate(terms):
+        coef = format_coefficient(t["mean"], t["std"])
+        if i and not coef.startswith("-"):
+            coef = "+ " + coef
+        elif i:
+            coef = "- " + coef[1:]
+        expr = "" if t["expr"] == "1" else f" {t['expr']}"
+        parts.append(f"{coef}{expr}")
+    return f"{label}: " + " ".join(parts)

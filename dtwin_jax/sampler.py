@@ -1,0 +1,466 @@
+"""Spike-and-slab Gibbs sampler for sparse Bayesian linear regression.
+
+The model (the paper's Section 3, Fig. 1), for a target ``y (N,)`` and library ``L (N, K)``:
+
+    y | theta, sigma2        ~ N(L theta, sigma2 I)
+    theta_k | gamma_k = 0    = 0                              (Dirac spike)
+    theta_g | gamma, v_s     ~ N(0, sigma2 v_s I)             (slab, active set g)
+    gamma_k | p0             ~ Bernoulli(p0)
+    p0 ~ Beta(a_p, b_p),  sigma2 ~ IG(a_sigma, b_sigma),  v_s ~ IG(a_v, b_v)
+
+One step is a partially collapsed Gibbs sweep:
+
+1. each indicator ``gamma_k`` in random order from ``p(gamma_k | gamma_-k, v_s, p0, y)``, with
+   ``theta`` and ``sigma2`` integrated out (the paper's Appendix A);
+2. ``sigma2 ~ p(sigma2 | gamma, v_s, y)`` (``theta`` integrated out), then
+   ``theta ~ p(theta | gamma, sigma2, v_s, y)``;
+3. ``v_s ~ p(v_s | theta, sigma2, gamma)`` and ``p0 ~ p(p0 | gamma)``.
+
+Everything works from the sufficient statistics ``L^T L``, ``L^T y``, ``y^T y`` and ``N``:
+nothing of size N x N is formed and a sweep costs O(K^3), independent of N. The indicator
+updates keep ``P = A^-1`` of the active block ``A = L_g^T L_g + I / v_s`` (embedded in a K x K
+matrix with zeros off the active set) and change it by rank-one Schur-complement updates, so
+one indicator costs O(K^2). ``P`` is refactorised once per sweep, when ``v_s`` has changed.
+
+The kernel follows blackjax: ``init(stats) -> GibbsState`` and
+``step(key, state, stats) -> (GibbsState, GibbsInfo)`` are pure functions of NamedTuples,
+jittable, vmappable over chains and over independent problems.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax.scipy.linalg import cho_solve, solve_triangular
+
+__all__ = [
+    "SpikeSlabPrior",
+    "SuffStats",
+    "GibbsState",
+    "GibbsInfo",
+    "GibbsTrace",
+    "suff_stats",
+    "standardize",
+    "init",
+    "step",
+    "run_chain",
+    "sample",
+]
+
+
+class SpikeSlabPrior(NamedTuple):
+    """Hyperparameters (the paper's defaults; its authors' code uses a_sigma = b_sigma = 1e-4)."""
+
+    a_p: float = 0.1
+    b_p: float = 1.0
+    a_v: float = 0.5
+    b_v: float = 0.5
+    a_sigma: float = 1e-4
+    b_sigma: float = 1e-4
+
+
+class SuffStats(NamedTuple):
+    """Sufficient statistics of one regression ``y = L theta + eps``."""
+
+    gram: jax.Array  # (K, K)  L^T L
+    xty: jax.Array  # (K,)    L^T y
+    yty: jax.Array  # ()      y^T y
+    n: jax.Array  # ()      number of rows N
+
+
+class GibbsState(NamedTuple):
+    gamma: jax.Array  # (K,) bool: slab membership
+    theta: jax.Array  # (K,) coefficients, zero off the active set
+    sigma2: jax.Array  # () residual variance
+    v_s: jax.Array  # () slab variance (relative to sigma2)
+    p0: jax.Array  # () prior inclusion probability
+
+
+class GibbsInfo(NamedTuple):
+    num_active: jax.Array  # () number of active terms after the sweep
+    log_marginal: jax.Array  # () log p(y | gamma, v_s) after the sweep (up to a constant)
+
+
+class GibbsTrace(NamedTuple):
+    """Draws of one or more chains: leading axes ``(..., num_draws)``."""
+
+    gamma: jax.Array  # (..., D, K)
+    theta: jax.Array  # (..., D, K)
+    sigma2: jax.Array  # (..., D)
+    v_s: jax.Array  # (..., D)
+    p0: jax.Array  # (..., D)
+    log_marginal: jax.Array  # (..., D)
+
+
+def suff_stats(L: jax.Array, y: jax.Array) -> SuffStats:
+    """Sufficient statistics of ``L (N, K)`` and ``y (N,)``."""
+    L = jnp.asarray(L, dtype=jnp.float64)
+    y = jnp.asarray(y, dtype=jnp.float64)
+    return SuffStats(L.T @ L, L.T @ y, y @ y, jnp.asarray(L.shape[0], dtype=jnp.float64))
+
+
+def standardize(stats: SuffStats) -> tuple[SuffStats, jax.Array, jax.Array]:
+    """Scale every column and the target to unit root-mean-square.
+
+    Returns ``(scaled_stats, column_scale (K,), target_scale ())``. A coefficient ``beta`` of
+    the scaled problem is ``theta = beta * target_scale / column_scale`` in physical units and a
+    scaled variance ``s2`` is ``s2 * target_scale**2``. Scaling makes the slab prior and the
+    inverse-gamma prior on ``sigma2`` mean the same thing whatever the units of the data.
+    """
+    col = jnp.sqrt(jnp.diagonal(stats.gram) / stats.n)
+    col = jnp.where(col > 0, col, 1.0)
+    ys = jnp.sqrt(stats.yty / stats.n)
+    ys = jnp.where(ys > 0, ys, 1.0)
+    scaled = SuffStats(
+        stats.gram / jnp.outer(col, col), stats.xty / (col * ys), stats.yty / ys**2, stats.n
+    )
+    return scaled, col, ys
+
+
+# --- the collapsed marginal likelihood -------------------------------------------------
+
+
+def _log_marginal(num_active, logdet, quad, v_s, stats: SuffStats, prior: SpikeSlabPrior):
+    """log p(y | gamma, v_s) up to a constant, with theta and sigma2 integrated out."""
+    resid = jnp.maximum(stats.yty - quad, 1e-300)
+    shape = prior.a_sigma + 0.5 * stats.n
+    return (
+        -0.5 * num_active * jnp.log(v_s)
+        - 0.5 * logdet
+        - shape * jnp.log(prior.b_sigma + 0.5 * resid)
+    )
+
+
+def _factor(gram, xty, gamma, v_s):
+    """Cholesky factor of the active block, padded with the identity off the active set."""
+    m = gamma.astype(gram.dtype)
+    mm = jnp.outer(m, m)
+    A = (gram + jnp.eye(gram.shape[0]) / v_s) * mm + jnp.diag(1.0 - m)
+    chol = jnp.linalg.cholesky(A)
+    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
+    mean = cho_solve((chol, True), xty * m) * m
+    quad = jnp.dot(xty * m, mean)
+    return chol, logdet, mean, quad, mm
+
+
+def _inverse(chol, mm):
+    """``A^-1`` restricted to the active set (zeros elsewhere)."""
+    eye = jnp.eye(chol.shape[0], dtype=chol.dtype)
+    return cho_solve((chol, True), eye) * mm
+
+
+# --- initialisation --------------------------------------------------------------------
+
+
+def _greedy_gamma(stats: SuffStats, prior: SpikeSlabPrior, p0, v_s, R: int):
+    """Forward selection on the collapsed posterior of gamma at fixed ``p0`` and ``v_s``.
+
+    Starting from the empty model, add the term whose inclusion most increases
+    ``log p(y | gamma, v_s) + log p(gamma | p0)`` until no addition helps. This replaces the
+    paper's least-squares initialisation (Algorithm 1, steps 2-3), which breaks down when the
+    library is nearly collinear (K close to N, or exp/sin next to polynomials).
+    """
+    K = stats.gram.shape[0]
+    G, b = stats.gram, stats.xty
+    logit_p0 = jnp.log(p0) - jnp.log1p(-p0)
+
+    def gains(P, gamma, logdet, quad, r):
+        m = gamma.astype(G.dtype)
+        U = P @ (G * m[:, None])  # column k: P g_k, g_k the active part of G[:, k]
+        s = jnp.maximum(jnp.diagonal(G) + 1.0 / v_s - jnp.sum(G * m[:, None] * U, axis=0), 1.0 / v_s)
+        t = b - U.T @ b
+        new = _log_marginal(r + 1, logdet + jnp.log(s), quad + t**2 / s, v_s, stats, prior)
+        old = _log_marginal(r, logdet, quad, v_s, stats, prior)
+        gain = jnp.where(gamma, -jnp.inf, new - old + logit_p0)
+        return gain, U, s, t
+
+    def cond(carry):
+        _, gamma, _, _, r, best = carry
+        return (best > 0) & (r < R)
+
+    def body(carry):
+        P, gamma, logdet, quad, r, _ = carry
+        gain, U, s, t = gains(P, gamma, logdet, quad, r)
+        k = jnp.argmax(gain)
+        best = gain[k]
+        w = U[:, k] - jnp.eye(K, dtype=G.dtype)[k]
+        add = best > 0
+        P = jnp.where(add, P + jnp.outer(w, w) / s[k], P)
+        gamma = jnp.where(add, gamma.at[k].set(True), gamma)
+        logdet = jnp.where(add, logdet + jnp.log(s[k]), logdet)
+        quad = jnp.where(add, quad + t[k] ** 2 / s[k], quad)
+        r = jnp.where(add, r + 1, r)
+        return P, gamma, logdet, quad, r, best
+
+    carry = (
+        jnp.zeros_like(G),
+        jnp.zeros(K, dtype=bool),
+        jnp.zeros((), G.dtype),
+        jnp.zeros((), G.dtype),
+        jnp.zeros((), jnp.int32),
+        jnp.asarray(jnp.inf, G.dtype),
+    )
+    return jax.lax.while_loop(cond, body, carry)[1]
+
+
+def init(
+    stats: SuffStats,
+    prior: SpikeSlabPrior = SpikeSlabPrior(),
+    *,
+    p0: float = 0.1,
+    v_s: float = 10.0,
+    gamma: jax.Array | None = None,
+    max_active: int | None = None,
+) -> GibbsState:
+    """Initial state: ``gamma`` by greedy forward selection (unless given), ``theta`` its
+    posterior mean, ``sigma2`` the residual variance, ``p0`` and ``v_s`` as given (the
+    paper's 0.1 and 10)."""
+    p0 = jnp.asarray(p0, stats.gram.dtype)
+    v_s = jnp.asarray(v_s, stats.gram.dtype)
+    if gamma is None:
+        R = _max_active(stats.gram.shape[0], max_active)
+        gamma = _greedy_gamma(stats, prior, p0, v_s, R)
+    gamma = jnp.asarray(gamma, dtype=bool)
+    _, _, mean, quad, _ = _factor(stats.gram, stats.xty, gamma, v_s)
+    sigma2 = jnp.maximum(stats.yty - quad, 1e-300) / stats.n
+    return GibbsState(gamma, mean, sigma2, v_s, p0)
+
+
+# --- one sweep ---------------------------------------------------------------------------
+
+
+def _active_slots(gamma, R):
+    """The first ``R`` active indices in slots ``(R,)`` (``K`` marks an empty slot), and the
+    slot of every term ``(K,)`` (``R`` when inactive)."""
+    K = gamma.shape[0]
+    slot_idx = jnp.nonzero(gamma, size=R, fill_value=K)[0].astype(jnp.int32)
+    slot_of = jnp.full(K + 1, R, jnp.int32).at[slot_idx].set(jnp.arange(R, dtype=jnp.int32))
+    return slot_idx, slot_of[:K]
+
+
+def _factor_slots(stats: SuffStats, slot_idx, v_s):
+    """Cholesky factor of the active block held in slots, identity on empty slots."""
+    K = stats.gram.shape[0]
+    R = slot_idx.shape[0]
+    m = (slot_idx < K).astype(stats.gram.dtype)
+    idx = jnp.minimum(slot_idx, K - 1)
+    mm = jnp.outer(m, m)
+    A = (stats.gram[idx][:, idx] + jnp.eye(R) / v_s) * mm + jnp.diag(1.0 - m)
+    chol = jnp.linalg.cholesky(A)
+    bs = stats.xty[idx] * m
+    mean = cho_solve((chol, True), bs) * m
+    return chol, 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol))), mean, jnp.dot(bs, mean), mm, bs
+
+
+def _indicator_sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrior, R: int):
+    """Update every indicator once, in random order.
+
+    The inverse ``P (R, R)`` of the active block lives in ``R = max_active`` slots, so adding or
+    removing a term is a rank-one update costing O(R^2) <= O(K^2).
+    """
+    K = stats.gram.shape[0]
+    G, b = stats.gram, stats.xty
+    dtype = G.dtype
+    eye = jnp.eye(R, dtype=dtype)
+    slot_idx, slot_of = _active_slots(gamma, R)
+    chol, logdet, _, quad, mm, _ = _factor_slots(stats, slot_idx, v_s)
+    P = cho_solve((chol, True), eye) * mm
+    logit_p0 = jnp.log(p0) - jnp.log1p(-p0)
+    key_order, key_u = jax.random.split(key)
+    order = jax.random.permutation(key_order, K)
+    uniforms = jax.random.uniform(key_u, (K,), dtype=dtype)
+
+    def body(i, carry):
+        P, slot_idx, slot_of, gamma, logdet, quad, r = carry
+        k = order[i].astype(jnp.int32)
+        active = gamma[k]
+        occupied = slot_idx < K
+        m = occupied.astype(dtype)
+        idx = jnp.minimum(slot_idx, K - 1)
+        g = G[k, idx] * m
+        bs = b[idx] * m
+        # Adding k (valid when inactive): Schur complement s of the new diagonal entry.
+        u = P @ g
+        s = jnp.maximum(G[k, k] + 1.0 / v_s - jnp.dot(g, u), 1.0 / v_s)
+        t = b[k] - jnp.dot(u, bs)
+        # Removing k (valid when active): P_jj is the inverse Schur complement.
+        j = jnp.minimum(slot_of[k], R - 1).astype(jnp.int32)
+        p = P[:, j]
+        pjj = jnp.where(active, P[j, j], 1.0)
+        pb = jnp.dot(p, bs)
+        r_out = r - active.astype(dtype)
+        logdet_in = jnp.where(active, logdet, logdet + jnp.log(s))
+        quad_in = jnp.where(active, quad, quad + t**2 / s)
+        logdet_out = jnp.where(active, logdet + jnp.log(pjj), logdet)
+        quad_out = jnp.where(active, quad - pb**2 / pjj, quad)
+        log_odds = (
+            logit_p0
+            + _log_marginal(r_out + 1, logdet_in, quad_in, v_s, stats, prior)
+            - _log_marginal(r_out, logdet_out, quad_out, v_s, stats, prior)
+        )
+        # The model size is capped at R (a truncated prior): a full model cannot grow.
+        full = ~active & (r_out >= R)
+        new = (uniforms[i] < jax.nn.sigmoid(log_odds)) & ~full
+        add = new & ~active
+        remove = active & ~new
+        free = jnp.argmin(occupied).astype(jnp.int32)
+        vec = jnp.where(add, u - eye[free], p)
+        coef = jnp.where(add, 1.0 / s, jnp.where(remove, -1.0 / pjj, 0.0))
+        slot = jnp.where(add, free, j)
+        slot_idx = jnp.where(add | remove, slot_idx.at[slot].set(jnp.where(add, k, K)), slot_idx)
+        slot_of = jnp.where(add | remove, slot_of.at[k].set(jnp.where(add, slot, R)), slot_of)
+        m_new = (slot_idx < K).astype(dtype)
+        P = (P + coef * jnp.outer(vec, vec)) * jnp.outer(m_new, m_new)
+        gamma = gamma.at[k].set(new)
+        logdet = jnp.where(new, logdet_in, logdet_out)
+        quad = jnp.where(new, quad_in, quad_out)
+        return P, slot_idx, slot_of, gamma, logdet, quad, r_out + new.astype(dtype)
+
+    r0 = jnp.sum(gamma).astype(dtype)
+    carry = (P, slot_idx, slot_of, gamma, logdet, quad, r0)
+    return jax.lax.fori_loop(0, K, body, carry)[3]
+
+
+def _max_active(K: int, max_active: int | None) -> int:
+    return min(K, 64) if max_active is None else min(K, int(max_active))
+
+
+def step(
+    key: jax.Array,
+    state: GibbsState,
+    stats: SuffStats,
+    prior: SpikeSlabPrior = SpikeSlabPrior(),
+    max_active: int | None = None,
+) -> tuple[GibbsState, GibbsInfo]:
+    """One Gibbs sweep. Pure: the same key and state give the same result.
+
+    ``max_active`` (static, default ``min(K, 64)``) caps the number of active terms; the
+    sampler then targets the prior truncated to models of at most that size.
+    """
+    k_ind, k_sig, k_theta, k_v, k_p = jax.random.split(key, 5)
+    K = stats.gram.shape[0]
+    R = _max_active(K, max_active)
+    dtype = stats.gram.dtype
+    gamma = _indicator_sweep(k_ind, state.gamma, state.p0, state.v_s, stats, prior, R)
+    r = jnp.sum(gamma).astype(dtype)
+
+    slot_idx, _ = _active_slots(gamma, R)
+    chol, logdet, mean, quad, _, _ = _factor_slots(stats, slot_idx, state.v_s)
+    resid = jnp.maximum(stats.yty - quad, 1e-300)
+    shape = prior.a_sigma + 0.5 * stats.n
+    sigma2 = (prior.b_sigma + 0.5 * resid) / jax.random.gamma(k_sig, shape, dtype=dtype)
+
+    z = jax.random.normal(k_theta, (R,), dtype=dtype)
+    m = (slot_idx < K).astype(dtype)
+    theta_slots = (mean + jnp.sqrt(sigma2) * solve_triangular(chol.T, z, lower=False)) * m
+    theta = jnp.zeros(K + 1, dtype).at[slot_idx].set(theta_slots)[:K]
+
+    v_shape = prior.a_v + 0.5 * r
+    v_rate = prior.b_v + 0.5 * jnp.dot(theta, theta) / sigma2
+    v_s = v_rate / jax.random.gamma(k_v, v_shape, dtype=dtype)
+    p0 = jax.random.beta(k_p, prior.a_p + r, prior.b_p + K - r, dtype=dtype)
+    # Guard the log-odds against p0 rounding to exactly 0 or 1.
+    p0 = jnp.clip(p0, 1e-300, 1.0 - 1e-16)
+
+    log_ml = _log_marginal(r, logdet, quad, state.v_s, stats, prior)
+    return GibbsState(gamma, theta, sigma2, v_s, p0), GibbsInfo(r, log_ml)
+
+
+# --- running chains ----------------------------------------------------------------------
+
+
+def run_chain(
+    key: jax.Array,
+    state: GibbsState,
+    stats: SuffStats,
+    num_steps: int,
+    prior: SpikeSlabPrior = SpikeSlabPrior(),
+    max_active: int | None = None,
+) -> tuple[GibbsState, GibbsTrace]:
+    """``num_steps`` sweeps under ``lax.scan``; returns the last state and every draw."""
+    return _run_keys(jax.random.split(key, num_steps), state, stats, prior, max_active)
+
+
+def sample(
+    key: jax.Array,
+    stats: SuffStats,
+    *,
+    num_draws: int = 2000,
+    num_burnin: int = 1000,
+    num_chains: int = 4,
+    prior: SpikeSlabPrior = SpikeSlabPrior(),
+    p0: float = 0.1,
+    v_s: float = 10.0,
+    max_active: int | None = None,
+    progress: bool = False,
+    chunk: int | None = None,
+) -> GibbsTrace:
+    """Standardise, run ``num_chains`` chains (vmapped) and return draws in physical units.
+
+    Returns a :class:`GibbsTrace` with leading axes ``(num_chains, num_draws)``; ``theta`` is in
+    the units of ``y`` per unit of each library column and ``sigma2`` in units of ``y**2``.
+    All chains start from the greedy initial state (see :func:`init`) with their own keys.
+    Jittable and vmappable (over ``key`` and ``stats``) when ``progress`` is False. With
+    ``progress`` the chains advance in chunks of ``chunk`` sweeps between updates of a progress
+    bar; the draws are identical either way.
+    """
+    scaled, col, ys = standardize(stats)
+    total = num_burnin + num_draws
+    keys, states = _setup(key, scaled, prior, p0, v_s, max_active, num_chains, total)
+    if progress:
+        trace = _run_with_progress(keys, states, scaled, prior, max_active, total, chunk)
+    else:
+        _, trace = jax.vmap(_run_keys, in_axes=(0, 0, None, None, None))(
+            keys, states, scaled, prior, max_active
+        )
+    trace = jax.tree.map(lambda a: a[:, num_burnin:], trace)
+    factor = ys / col
+    return trace._replace(theta=trace.theta * factor, sigma2=trace.sigma2 * ys**2)
+
+
+def _setup(key, scaled, prior, p0, v_s, max_active, num_chains, total):
+    state0 = init(scaled, prior, p0=p0, v_s=v_s, max_active=max_active)
+    states = jax.tree.map(lambda a: jnp.broadcast_to(a, (num_chains,) + a.shape), state0)
+    keys = jax.vmap(lambda k: jax.random.split(k, total))(jax.random.split(key, num_chains))
+    return keys, states
+
+
+def _run_keys(keys, state, stats, prior, max_active=None):
+    """Like :func:`run_chain` but from explicit per-step keys, so chunking cannot change draws."""
+
+    def one(state, key):
+        state, info = step(key, state, stats, prior, max_active)
+        return state, GibbsTrace(
+            state.gamma, state.theta, state.sigma2, state.v_s, state.p0, info.log_marginal
+        )
+
+    return jax.lax.scan(one, state, keys)
+
+
+_run_keys_jit = jax.jit(
+    jax.vmap(_run_keys, in_axes=(0, 0, None, None, None)), static_argnums=(3, 4)
+)
+
+
+def _run_with_progress(keys, states, stats, prior, max_active, total, chunk):
+    from tqdm.auto import tqdm
+
+    chunk = chunk or max(1, -(-total // 20))
+    pieces = []
+    with tqdm(total=total, desc="Gibbs sweeps", unit="sweep", leave=False) as bar:
+        for start in range(0, total, chunk):
+            ks = keys[:, start : start + chunk]
+            states, trace = _run_keys_jit(ks, states, stats, prior, max_active)
+            jax.block_until_ready(trace)
+            pieces.append(trace)
+            bar.update(ks.shape[1])
+    return jax.tree.map(lambda *a: jnp.concatenate(a, axis=1), *pieces)
+
+
+sample_jit = jax.jit(
+    sample,
+    static_argnames=("num_draws", "num_burnin", "num_chains", "prior", "max_active", "progress", "chunk"),
+)
+sample_jit.__doc__ = "``jax.jit`` of :func:`sample` (``progress`` must be False)."
