@@ -1,0 +1,76 @@
+"""Validation of measured signals: every check raises a one-line :class:`DataError`."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from dtwin_jax.errors import DataError
+from dtwin_jax.systems import LinearSecondOrder
+
+__all__ = ["Records", "check_records"]
+
+_MIN_SAMPLES = 16
+
+
+class Records(NamedTuple):
+    """Validated measurements with an explicit record axis.
+
+    ``t (N,)`` seconds; ``x (R, N, m)``; ``u (R, N, n)`` or None; ``xdot (R, N, m)`` or None.
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    u: np.ndarray | None
+    xdot: np.ndarray | None
+
+    @property
+    def dt(self) -> float:
+        return float(self.t[1] - self.t[0])
+
+
+def _as_records(name: str, a, N: int, width: int | None, what: str) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim == 2:
+        a = a[None]
+    if a.ndim != 3:
+        raise DataError(f"'{name}' must have shape (N, {what}) or (R, N, {what}), got {a.shape}")
+    if a.shape[1] != N:
+        raise DataError(f"'{name}' has {a.shape[1]} samples but 't' has {N}")
+    if width is not None and a.shape[2] != width:
+        raise DataError(f"'{name}' has {a.shape[2]} columns but the nominal model needs {width}")
+    if not np.all(np.isfinite(a)):
+        raise DataError(f"'{name}' contains NaN or infinite values")
+    return a
+
+
+def check_records(t, x, u=None, xdot=None, nominal: LinearSecondOrder | None = None) -> Records:
+    """Check shapes, finiteness and uniform sampling; return :class:`Records`."""
+    t = np.asarray(t, dtype=np.float64)
+    if t.ndim != 1:
+        raise DataError(f"'t' must be one-dimensional, got shape {t.shape}")
+    if t.size < _MIN_SAMPLES:
+        raise DataError(f"'t' has {t.size} samples; at least {_MIN_SAMPLES} are needed")
+    if not np.all(np.isfinite(t)):
+        raise DataError("'t' contains NaN or infinite values")
+    dts = np.diff(t)
+    dt = dts.mean()
+    if dt <= 0 or np.max(np.abs(dts - dt)) > 1e-6 * dt:
+        raise DataError(
+            f"'t' is not uniformly spaced (steps from {dts.min():.6g} to {dts.max():.6g} s)"
+        )
+    N = t.size
+    m = nominal.m if nominal is not None else None
+    n = nominal.n if nominal is not None else None
+    x = _as_records("x", x, N, m, "m")
+    R = x.shape[0]
+    if u is not None:
+        u = _as_records("u", u, N, n, "n")
+        if u.shape[0] != R:
+            raise DataError(f"'u' has {u.shape[0]} records but 'x' has {R}")
+    if xdot is not None:
+        xdot = _as_records("xdot", xdot, N, x.shape[2], "m")
+        if xdot.shape[0] != R:
+            raise DataError(f"'xdot' has {xdot.shape[0]} records but 'x' has {R}")
+    return Records(t, x, u, xdot)

@@ -1,0 +1,158 @@
+"""Files of formats.md: measurement files (.npz, .csv), nominal models (.toml), results (.json).
+
+Every reader raises a one-line :class:`DataError` naming the problem; writers write to a
+temporary file and rename it, so a failed run leaves nothing half-written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+from dtwin_jax.errors import DataError
+from dtwin_jax.systems import LinearSecondOrder
+
+__all__ = ["load_nominal", "load_measurements", "write_json", "write_nominal", "atomic_path"]
+
+
+def load_nominal(path) -> LinearSecondOrder:
+    """Read ``M``, ``C``, ``K`` (d x d), optional ``B`` (d x n) and ``extra_states``."""
+    path = Path(path)
+    try:
+        with path.open("rb") as f:
+            doc = tomllib.load(f)
+    except FileNotFoundError:
+        raise DataError(f"nominal model file '{path}' does not exist") from None
+    except tomllib.TOMLDecodeError as e:
+        raise DataError(f"nominal model file '{path}' is not valid TOML: {e}") from None
+    for key in ("M", "C", "K"):
+        if key not in doc:
+            raise DataError(f"nominal model file '{path}' is missing key '{key}'")
+    mats = {}
+    for key in ("M", "C", "K", "B"):
+        if key in doc:
+            try:
+                mats[key] = np.asarray(doc[key], dtype=np.float64)
+            except (TypeError, ValueError):
+                raise DataError(f"'{key}' in '{path}' is not a numeric matrix") from None
+            if mats[key].ndim != 2:
+                raise DataError(f"'{key}' in '{path}' must be a matrix (list of rows)")
+    extra = doc.get("extra_states", 0)
+    if not isinstance(extra, int) or isinstance(extra, bool) or extra < 0:
+        raise DataError(f"'extra_states' in '{path}' must be a non-negative integer")
+    return LinearSecondOrder.create(
+        mats["M"], mats["C"], mats["K"], mats.get("B"), extra_states=extra
+    )
+
+
+def write_nominal(path, nominal: LinearSecondOrder) -> None:
+    """Write a nominal model as the TOML of formats.md."""
+
+    def mat(a):
+        return "[" + ", ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in np.asarray(a)) + "]"
+
+    text = (
+        f"M = {mat(nominal.M)}\nC = {mat(nominal.C)}\nK = {mat(nominal.K)}\n"
+        f"B = {mat(nominal.B)}\nextra_states = {nominal.extra_states}\n"
+    )
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(text)
+
+
+def load_measurements(path) -> dict:
+    """Read ``t``, ``x`` and optional ``u``, ``xdot`` from ``.npz`` or ``.csv``.
+
+    A CSV file holds one record with header ``t,x1..xm[,u1..un]``; columns ``xdot1..xdotm``
+    (an extension) carry measured rates.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"measurement file '{path}' does not exist")
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                data = {k: np.asarray(z[k]) for k in z.files}
+        except (OSError, ValueError) as e:
+            raise DataError(f"measurement file '{path}' is not a readable .npz: {e}") from None
+    elif suffix == ".csv":
+        data = _read_csv(path)
+    else:
+        raise DataError(f"measurement file '{path}' must be .npz or .csv")
+    for key in ("t", "x"):
+        if key not in data:
+            raise DataError(f"measurement file '{path}' is missing key '{key}'")
+    out = {"t": data["t"], "x": data["x"]}
+    for key in ("u", "xdot"):
+        if key in data:
+            out[key] = data[key]
+    for key, a in out.items():
+        if not np.issubdtype(np.asarray(a).dtype, np.number):
+            raise DataError(f"'{key}' in '{path}' is not numeric")
+    return out
+
+
+def _read_csv(path: Path) -> dict:
+    with path.open() as f:
+        header = [h.strip() for h in f.readline().strip().split(",")]
+    try:
+        table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    except ValueError as e:
+        raise DataError(f"measurement file '{path}' has a non-numeric value: {e}") from None
+    if table.shape[1] != len(header):
+        raise DataError(f"'{path}' has {table.shape[1]} columns but its header names {len(header)}")
+    cols = {name: table[:, i] for i, name in enumerate(header)}
+    data = {}
+    if "t" in cols:
+        data["t"] = cols["t"]
+    for key, prefix in (("x", "x"), ("u", "u"), ("xdot", "xdot")):
+        names = _numbered(header, prefix)
+        if names:
+            data[key] = np.stack([cols[n] for n in names], axis=1)
+    unknown = [h for h in header if h != "t" and not any(
+        h in _numbered(header, p) for p in ("x", "u", "xdot"))]
+    if unknown:
+        raise DataError(f"'{path}' has unknown column '{unknown[0]}' (expected t, x1.., u1.., xdot1..)")
+    return data
+
+
+def _numbered(header, prefix):
+    """``prefix1, prefix2, ...`` in order; a gap is an error."""
+    found = sorted(
+        (int(h[len(prefix):]), h) for h in header
+        if h.startswith(prefix) and h[len(prefix):].isdigit()
+    )
+    for expect, (i, h) in enumerate(found, start=1):
+        if i != expect:
+            raise DataError(f"CSV columns '{prefix}1..' are not numbered consecutively (found '{h}')")
+    return [h for _, h in found]
+
+
+class atomic_path:
+    """Context manager yielding a temporary path that replaces ``path`` on success only."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+
+    def __enter__(self) -> str:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd, self.tmp = tempfile.mkstemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=self.path.suffix)
+        os.close(fd)
+        return self.tmp
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            os.replace(self.tmp, self.path)
+        elif os.path.exists(self.tmp):
+            os.remove(self.tmp)
+        return False
+
+
+def write_json(path, obj) -> None:
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(json.dumps(obj, indent=2) + "\n")
