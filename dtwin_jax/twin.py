@@ -20,7 +20,8 @@ import numpy as np
 from dtwin_jax import sampler
 from dtwin_jax.data import Records, check_records
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_library
-from dtwin_jax.measurement import highest_natural_frequency_hz, smooth, smoothing_half_width
+from dtwin_jax.denoise import auto_half_width, kinematic_smoother, savgol_states
+from dtwin_jax.measurement import smooth
 from dtwin_jax.posterior import EquationPosterior
 from dtwin_jax.systems import LinearSecondOrder
 
@@ -144,25 +145,25 @@ class UpdateResult:
 
 
 def denoise_states(records: Records, nominal: LinearSecondOrder, smoothing="auto") -> tuple:
-    """Savitzky-Golay smoothing of the measured states, matched to the sampling rate.
+    """Denoise the measured states before they enter the library and the nominal rates.
 
-    ``smoothing``: ``"auto"`` (order 4, cutoff ~8x the highest nominal natural frequency),
-    an int half width, or None (no smoothing). Returns ``(x (R, N, m), half_width or None)``.
-    Smoothing matters because the states enter the library: noise there is an
-    errors-in-variables error that biases every coefficient towards zero.
+    ``smoothing``: ``"auto"`` (the kinematic RTS smoother when rates are measured, else a
+    Savitzky-Golay filter matched to the sampling rate), ``"savgol"``, an int Savitzky-Golay
+    half width, or None (raw states). Returns ``(x (R, N, m), description dict or None)``.
     """
     if smoothing is None:
         return records.x, None
-    if smoothing == "auto":
-        f_hz = highest_natural_frequency_hz(nominal)
-        if f_hz <= 0:  # no stiffness: fall back to a window of 1% of the record
-            half_width = max(3, records.t.size // 200)
-        else:
-            half_width = smoothing_half_width(records.dt, f_hz)
-    else:
-        half_width = int(smoothing)
-    half_width = min(half_width, (records.t.size - 1) // 2)
-    return np.asarray(smooth(records.x, half_width, order=4)), half_width
+    hw = auto_half_width(nominal, records.dt, records.t.size)
+    if smoothing == "auto" and records.xdot is not None:
+        u = records.u if records.u is not None else [None] * records.x.shape[0]
+        xs = np.stack([
+            np.asarray(kinematic_smoother(nominal, records.dt, x, xd, uu, hw))
+            for x, xd, uu in zip(records.x, records.xdot, u)
+        ])
+        return xs, {"method": "kinematic-rts", "noise_half_width": hw}
+    if smoothing not in ("auto", "savgol"):
+        hw = min(int(smoothing), (records.t.size - 1) // 2)
+    return np.asarray(savgol_states(records.x, hw)), {"method": "savitzky-golay", "order": 4, "half_width": hw}
 
 
 def input_output_targets(nominal: LinearSecondOrder, x, u, xdot) -> jax.Array:
@@ -244,12 +245,12 @@ def update_input_output(
 
         raise DataError("input-output update needs measured inputs 'u'")
     lib = _library(library, nominal, nominal.n)
-    xs, half_width = denoise_states(rec, nominal, smoothing)
+    xs, smoothing_info = denoise_states(rec, nominal, smoothing)
     if rec.xdot is not None:
         rates = rec.xdot
         rate_source = "measured"
     else:
-        hw = half_width or smoothing_half_width(rec.dt, max(highest_natural_frequency_hz(nominal), 1e-3))
+        hw = auto_half_width(nominal, rec.dt, rec.t.size)
         rates = np.asarray(smooth(rec.x, hw, order=4, deriv=1, dt=rec.dt))
         rate_source = f"savitzky-golay derivative (order 4, half width {hw})"
     R, N, m = rec.x.shape
@@ -277,8 +278,7 @@ def update_input_output(
         settings=settings,
         seconds=time.perf_counter() - start,
         preprocessing={
-            "state_smoothing": None if half_width is None else
-            {"method": "savitzky-golay", "order": 4, "half_width": half_width},
+            "state_smoothing": smoothing_info,
             "rates": rate_source,
             "samples": int(R * N),
         },

@@ -1,0 +1,160 @@
+"""Denoising the measured states before they enter the library.
+
+Noise in the states is an errors-in-variables error: it sits inside the library columns and
+inside the nominal rates removed from the target, and biases the coefficients (plain least
+squares on example 1's ``x1**3`` at 5% noise comes out about 2% low). Two estimators:
+
+* :func:`kinematic_smoother` (used when rates are measured): a Rauch-Tung-Striebel smoother on
+  the exact kinematic chains ``dq/dt = v``, ``dv/dt = a`` (and ``de/dt = edot`` for extra
+  states) driven by the measured rates. It fuses displacement, velocity and acceleration
+  sensors: at low frequency it trusts the states, at high frequency the integrated rates.
+  No model of the (unknown) perturbed dynamics enters, only kinematics.
+* :func:`savgol_states` (when rates are not measured): a Savitzky-Golay filter whose cutoff is
+  matched to the sampling rate and to the nominal model's highest natural frequency.
+
+Sensor noise levels are estimated from the data: white noise is what a Savitzky-Golay
+projection leaves behind, ``var(s - SG(s)) = sigma^2 (1 - h_0)`` with ``h_0`` the filter's centre
+tap, because the signal lives well below the filter's cutoff.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dtwin_jax.measurement import (
+    highest_natural_frequency_hz,
+    savgol_coefficients,
+    smooth,
+    smoothing_half_width,
+)
+from dtwin_jax.systems import LinearSecondOrder
+
+__all__ = ["auto_half_width", "noise_std", "savgol_states", "kinematic_smoother"]
+
+_ORDER = 4
+
+
+def auto_half_width(nominal: LinearSecondOrder, dt: float, num_samples: int) -> int:
+    """Savitzky-Golay half width matched to ``dt`` and the nominal band (order 4)."""
+    f_hz = highest_natural_frequency_hz(nominal)
+    if f_hz <= 0:  # no stiffness: a window of 1% of the record
+        half_width = max(3, num_samples // 200)
+    else:
+        half_width = smoothing_half_width(dt, f_hz, order=_ORDER)
+    return int(min(half_width, (num_samples - 1) // 2))
+
+
+def noise_std(signal, half_width: int) -> jax.Array:
+    """Std of white noise on each column of ``signal (..., N, c)``, from the SG residual."""
+    h0 = float(savgol_coefficients(half_width, _ORDER)[half_width])
+    resid = signal - smooth(signal, half_width, _ORDER)
+    core = resid[..., half_width:-half_width, :]  # the edges use one-sided fits
+    return jnp.sqrt(jnp.mean(core**2, axis=-2) / (1.0 - h0))
+
+
+def savgol_states(x, half_width: int):
+    """Savitzky-Golay smoothing (order 4) of states ``x (..., N, m)``."""
+    return smooth(x, half_width, _ORDER)
+
+
+def _rts(z, w, drive, F, G, Q, r_diag):
+    """RTS smoother for ``s_{k+1} = F s_k + G w_k + drive_k + noise(Q)``, ``z_k = s_k + noise``.
+
+    ``z (N, p)`` measured states, ``w (N-1, p)`` known inputs, ``drive (N-1, p)`` extra known
+    increments, ``r_diag (p,)`` measurement variances. Returns smoothed states ``(N, p)``.
+    """
+    p = z.shape[1]
+    R = jnp.diag(r_diag)
+    eye = jnp.eye(p, dtype=z.dtype)
+
+    def update(s, P, zk):
+        K = jnp.linalg.solve(P + R, P).T  # P (P + R)^-1, both symmetric
+        return s + K @ (zk - s), (eye - K) @ P
+
+    s0, P0 = update(z[0], jnp.diag(r_diag) * 1e6, z[0])
+
+    def forward(carry, inputs):
+        s, P = carry
+        wk, dk, zk = inputs
+        sp = F @ s + G @ wk + dk
+        Pp = F @ P @ F.T + Q
+        s, P = update(sp, Pp, zk)
+        return (s, P), (s, P, sp, Pp)
+
+    _, (sf, Pf, sp, Pp) = jax.lax.scan(forward, (s0, P0), (w, drive, z[1:]))
+    sf = jnp.concatenate([s0[None], sf])
+    Pf = jnp.concatenate([P0[None], Pf])
+
+    def backward(s_next, inputs):
+        s, P, sp_next, Pp_next = inputs
+        C = jnp.linalg.solve(Pp_next, F @ P).T  # P F^T Pp^-1
+        s = s + C @ (s_next - sp_next)
+        return s, s
+
+    _, sb = jax.lax.scan(backward, sf[-1], (sf[:-1], Pf[:-1], sp, Pp), reverse=True)
+    return jnp.concatenate([sb, sf[-1:]])
+
+
+def kinematic_smoother(
+    nominal: LinearSecondOrder, dt: float, x, xdot, u=None, half_width: int | None = None
+):
+    """Fuse measured states ``x (N, m)`` with measured rates ``xdot (N, m)`` by RTS smoothing.
+
+    Each degree of freedom is the chain ``(q, v)`` driven by the measured acceleration; each
+    extra state ``e`` is driven by its measured rate. Within a sample interval the input
+    ``u (N, n)`` is held (piecewise constant), so the acceleration jumps by ``M^-1 B du`` at
+    sample times; the known jump is taken out before the trapezoidal integration. Noise
+    variances come from :func:`noise_std` (``half_width`` defaults to :func:`auto_half_width`).
+    Returns the smoothed states ``(N, m)``.
+    """
+    x = jnp.asarray(x)
+    xdot = jnp.asarray(xdot)
+    N, m = x.shape
+    d, E = nominal.d, nominal.extra_states
+    if half_width is None:
+        half_width = auto_half_width(nominal, dt, N)
+    jump = jnp.zeros_like(xdot)
+    if u is not None:
+        force = jnp.linalg.solve(nominal.M, nominal.B @ jnp.asarray(u).T).T  # (N, d)
+        jump = jump.at[:, d : 2 * d].set(force)
+    # a(t) on [t_k, t_k+1) = held part + smooth part s(t); s is integrated by trapezoid.
+    held = jump[:-1]
+    smooth_part = xdot - jump
+    s0, s1 = smooth_part[:-1], smooth_part[1:]
+    mean_rate = held + 0.5 * (s0 + s1)  # average rate over the step
+    pos_rate = held / 2 + (2 * s0 + s1) / 6  # double integral / dt^2
+    sig_x = noise_std(x, half_width)
+    sig_r = noise_std(smooth_part, half_width)
+    out = x
+    if d:
+        F = jnp.array([[1.0, dt], [0.0, 1.0]])
+        G = jnp.array([[dt**2, 0.0], [0.0, dt]])
+        q_idx = jnp.arange(d)
+        v_idx = d + q_idx
+
+        def chain(j_q, j_v):
+            z = jnp.stack([x[:, j_q], x[:, j_v]], axis=1)
+            w = jnp.stack([pos_rate[:, j_v], mean_rate[:, j_v]], axis=1)
+            sa = sig_r[j_v] ** 2 / 2  # trapezoid averages two noisy samples
+            Q = sa * jnp.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+            r = jnp.stack([sig_x[j_q], sig_x[j_v]]) ** 2
+            return _rts(z, w, jnp.zeros_like(w), F, G, Q, jnp.maximum(r, 1e-300))
+
+        sm = jax.vmap(chain)(q_idx, v_idx)  # (d, N, 2)
+        out = out.at[:, :d].set(sm[:, :, 0].T).at[:, d : 2 * d].set(sm[:, :, 1].T)
+    if E:
+        F1 = jnp.eye(1)
+        G1 = jnp.eye(1) * dt
+
+        def chain1(j):
+            z = x[:, j][:, None]
+            w = mean_rate[:, j][:, None]
+            Q = jnp.eye(1) * sig_r[j] ** 2 / 2 * dt**2
+            r = jnp.maximum(sig_x[j] ** 2, 1e-300)[None]
+            return _rts(z, w, jnp.zeros_like(w), F1, G1, Q, r)[:, 0]
+
+        e_idx = jnp.arange(2 * d, 2 * d + E)
+        out = out.at[:, 2 * d :].set(jax.vmap(chain1)(e_idx).T)
+    return out
