@@ -181,18 +181,77 @@ def _library(library, nominal: LinearSecondOrder, num_inputs: int) -> Library:
     return parse_library(library or DEFAULT_LIBRARY, nominal.m, num_inputs)
 
 
-def _sample_equations(L, Y, settings: SamplerSettings, seed: int, progress: bool):
-    """Sufficient statistics of each target column and one vmapped sampler call."""
+def equation_stats(L, Y) -> sampler.SuffStats:
+    """Sufficient statistics of every target column of ``Y (N, q)`` on one library ``L (N, K)``,
+    batched over the ``q`` equations."""
     L = jnp.asarray(L)
     Y = jnp.asarray(Y)
     gram = L.T @ L
-    stats = sampler.SuffStats(
+    return sampler.SuffStats(
         jnp.broadcast_to(gram, (Y.shape[1],) + gram.shape),
         (L.T @ Y).T,
         jnp.sum(Y * Y, axis=0),
         jnp.full(Y.shape[1], float(L.shape[0])),
     )
-    keys = jax.random.split(jax.random.key(seed), Y.shape[1])
+
+
+def input_noise_variance(nominal: LinearSecondOrder, xs, u, rates, half_width: int) -> np.ndarray:
+    """Variance ``(n,)`` of white noise on the measured inputs, from the measured rates.
+
+    A white input cannot be told from white noise on its own, but the accelerations see only
+    the true input: the high-frequency parts of ``r = xdot - f(x, 0)`` and ``u`` covary through
+    ``M^-1 B`` times the true input's variance, while ``u`` alone carries true + noise.
+    ``xs``, ``u``, ``rates`` are ``(R, N, .)``.
+    """
+    from dtwin_jax.denoise import _ORDER
+    from dtwin_jax.measurement import savgol_coefficients
+
+    d = nominal.d
+    vel = np.asarray(nominal.velocity_index)
+    gain = np.linalg.solve(np.asarray(nominal.M), np.asarray(nominal.B))  # (d, n)
+    zero = np.zeros(u.shape[-1])
+    r = np.stack([
+        np.asarray(rd)[:, vel] - np.asarray(nominal.rate_batch(jnp.asarray(x), jnp.asarray(np.broadcast_to(zero, uu.shape))))[:, vel]
+        for x, uu, rd in zip(xs, u, rates)
+    ])
+    core = slice(half_width, -half_width)
+    hp_r = (r - np.asarray(smooth(r, half_width, _ORDER)))[:, core].reshape(-1, d)
+    hp_u = (u - np.asarray(smooth(u, half_width, _ORDER)))[:, core].reshape(-1, u.shape[-1])
+    cov_ru = hp_r.T @ hp_u / hp_r.shape[0]  # (d, n) = gain @ cov(u_true)
+    var_true = np.diag(np.linalg.lstsq(gain, cov_ru, rcond=None)[0])
+    var_meas = np.mean(hp_u**2, axis=0)
+    h0 = float(savgol_coefficients(half_width, _ORDER)[half_width])
+    del d
+    return np.maximum(var_meas - var_true, 0.0) / (1.0 - h0)
+
+
+def correct_input_noise(stats: sampler.SuffStats, lib: Library, nominal: LinearSecondOrder, noise_var) -> sampler.SuffStats:
+    """Remove the input noise's contribution to the statistics (errors in variables).
+
+    The noise ``n`` on ``u_j`` sits in the library column ``u_j`` (adding ``N var_j`` to its
+    squared norm) and, through the removed nominal ``M^-1 B u``, in every velocity target with
+    the opposite sign (adding ``-N (M^-1 B)_ij var_j`` to ``L^T y``). Unremoved, it shows up as
+    a spurious ``u_j`` term at high noise.
+    """
+    gain = np.linalg.solve(np.asarray(nominal.M), np.asarray(nominal.B))  # (d, n)
+    gram, xty = np.array(stats.gram), np.array(stats.xty)
+    n_rows = float(np.asarray(stats.n)[0])
+    regressed = nominal.regressed_index
+    for j, name in enumerate(nominal.input_names):
+        if name not in lib.names:
+            continue
+        k = lib.names.index(name)
+        gram[:, k, k] -= n_rows * noise_var[j]
+        for e, i in enumerate(regressed):
+            if i in nominal.velocity_index:
+                xty[e, k] += n_rows * gain[i - nominal.d, j] * noise_var[j]
+    return stats._replace(gram=jnp.asarray(gram), xty=jnp.asarray(xty))
+
+
+def _sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed: int, progress: bool):
+    """One vmapped sampler call over the batched statistics of every equation."""
+    q = stats.xty.shape[0]
+    keys = jax.random.split(jax.random.key(seed), q)
     kwargs = dict(
         num_draws=settings.num_draws,
         num_burnin=settings.num_burnin,
@@ -210,7 +269,7 @@ def _sample_equations(L, Y, settings: SamplerSettings, seed: int, progress: bool
                 progress=True,
                 **kwargs,
             )
-            for i in range(Y.shape[1])
+            for i in range(q)
         ]
         return jax.tree.map(lambda *a: jnp.stack(a), *traces)
     run = jax.vmap(lambda k, s: sampler.sample_jit(k, s, p0=settings.p0, v_s=settings.v_s, **kwargs))
@@ -259,7 +318,13 @@ def update_input_output(
     Y = input_output_targets(nominal, xs_flat, u_flat, rates.reshape(R * N, m))
     L = np.asarray(lib(xs_flat, u_flat))
     check_columns(L, lib.names)
-    trace = _sample_equations(L, Y, settings, seed, progress)
+    stats = equation_stats(L, Y)
+    noise_var = None
+    if rec.xdot is not None and smoothing is not None and lib.uses_inputs:
+        hw = auto_half_width(nominal, rec.dt, rec.t.size)
+        noise_var = input_noise_variance(nominal, xs, rec.u, rates, hw)
+        stats = correct_input_noise(stats, lib, nominal, noise_var)
+    trace = _sample_equations(stats, settings, seed, progress)
     trace = jax.tree.map(np.asarray, trace)
     names = nominal.state_names
     equations = [
@@ -280,6 +345,7 @@ def update_input_output(
         preprocessing={
             "state_smoothing": smoothing_info,
             "rates": rate_source,
+            "input_noise_std": None if noise_var is None else np.sqrt(noise_var).tolist(),
             "samples": int(R * N),
         },
     )
