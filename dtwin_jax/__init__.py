@@ -9,7 +9,27 @@ import jax
 # The one piece of global state: every computation here is float64.
 jax.config.update("jax_enable_x64", True)
 
+from dtwin_jax import sampler, systems  # noqa: E402
 from dtwin_jax.errors import DataError  # noqa: E402
+from dtwin_jax.library import DEFAULT_LIBRARY, Library, parse_library  # noqa: E402
+from dtwin_jax.measurement import measure  # noqa: E402
+from dtwin_jax.systems import LinearSecondOrder, PerturbedSystem, simulate  # noqa: E402
+from dtwin_jax.twin import SamplerSettings, UpdatedTwin, UpdateResult, update_input_output  # noqa: E402
 
-__all__ = ["DataError"]
+__all__ = [
+    "DEFAULT_LIBRARY",
+    "DataError",
+    "Library",
+    "LinearSecondOrder",
+    "PerturbedSystem",
+    "SamplerSettings",
+    "UpdateResult",
+    "UpdatedTwin",
+    "measure",
+    "parse_library",
+    "sampler",
+    "simulate",
+    "systems",
+    "update_input_output",
+]
 __version__ = "0.1.0"

@@ -1,0 +1,108 @@
+"""The command line: bad input gets a one-line error and no output file; discover and demo work."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from dtwin_jax.cli import main
+
+NOMINAL = "M = [[1.0]]\nC = [[2.0]]\nK = [[1000.0]]\nB = [[0.5]]\n"
+
+
+def _data(N=400, seed=0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(N) * 1e-3
+    x = np.stack([0.1 * np.cos(30 * t), -3 * np.sin(30 * t)], axis=1) + 1e-4 * rng.normal(size=(N, 2))
+    u = rng.normal(size=(N, 1))
+    return {"t": t, "x": x, "u": u}
+
+
+@pytest.fixture
+def files(tmp_path):
+    (tmp_path / "nominal.toml").write_text(NOMINAL)
+    return tmp_path
+
+
+def _run(tmp_path, data, nominal_text=NOMINAL, extra=()):
+    np.savez(tmp_path / "data.npz", **data)
+    (tmp_path / "nominal.toml").write_text(nominal_text)
+    out = tmp_path / "result.json"
+    argv = ["discover", str(tmp_path / "data.npz"), "--nominal", str(tmp_path / "nominal.toml"),
+            "--out", str(out), "--draws", "50", "--burn-in", "10", "--chains", "1", "--quiet", *extra]
+    return main(argv), out
+
+
+def _error_line(capsys):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("dtwin-jax: error: ")
+    return err[0]
+
+
+BAD_CASES = {
+    "missing key": (lambda d: {k: v for k, v in d.items() if k != "x"}, NOMINAL, (), "missing key 'x'"),
+    "mismatched shapes": (lambda d: {**d, "u": d["u"][:-5]}, NOMINAL, (), "'u' has 395 samples"),
+    "wrong width": (lambda d: {**d, "x": np.hstack([d["x"], d["x"]])}, NOMINAL, (), "'x' has 4 columns"),
+    "non-uniform time": (lambda d: {**d, "t": d["t"] ** 1.01}, NOMINAL, (), "not uniformly spaced"),
+    "nan": (lambda d: {**d, "x": np.where(np.arange(400)[:, None] == 7, np.nan, d["x"])}, NOMINAL, (), "'x' contains NaN"),
+    "inf": (lambda d: {**d, "u": np.where(np.arange(400)[:, None] == 9, np.inf, d["u"])}, NOMINAL, (), "'u' contains NaN or infinite"),
+    "singular M": (lambda d: d, NOMINAL.replace("M = [[1.0]]", "M = [[0.0]]"), (), "singular"),
+    "missing nominal key": (lambda d: d, NOMINAL.replace("K = [[1000.0]]\n", ""), (), "missing key 'K'"),
+    "unknown family": (lambda d: d, NOMINAL, ("--library", "poly:2,bessel"), "unknown library family 'bessel'"),
+    "duplicate columns": (lambda d: {**d, "x": np.abs(d["x"]) + 0.01}, NOMINAL, ("--library", "poly:1,abs"), "duplicates"),
+    "all-zero column": (lambda d: {**d, "x": d["x"] * np.array([1.0, 0.0])}, NOMINAL, ("--library", "poly:2"), "zero"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_CASES))
+def test_bad_input_one_line_error_and_no_file(tmp_path, capsys, case):
+    mutate, nominal_text, extra, message = BAD_CASES[case]
+    code, out = _run(tmp_path, mutate(_data()), nominal_text, extra)
+    line = _error_line(capsys)
+    assert code != 0
+    assert message in line, line
+    assert not out.exists()
+    assert not list(tmp_path.glob(".result.json*"))  # no temporary left behind
+
+
+def test_discover_writes_the_result_file(tmp_path, capsys):
+    code, out = _run(tmp_path, _data(), extra=("--library", "poly:3,input", "--plot", str(tmp_path / "pip.png")))
+    assert code == 0
+    doc = json.loads(out.read_text())
+    assert doc["mode"] == "input-output" and doc["equations"][0]["state"] == "x2"
+    assert set(doc["equations"][0]["pip"]) == {"1", "x1", "x2", "x1**2", "x1*x2", "x2**2", "x1**3", "x1**2*x2", "x1*x2**2", "x2**3", "u1"}
+    assert (tmp_path / "pip.png").stat().st_size > 10_000
+
+
+def test_csv_input(tmp_path, capsys):
+    d = _data()
+    rows = np.column_stack([d["t"], d["x"], d["u"]])
+    (tmp_path / "data.csv").write_text("t,x1,x2,u1\n" + "\n".join(",".join(repr(float(v)) for v in r) for r in rows) + "\n")
+    (tmp_path / "nominal.toml").write_text(NOMINAL)
+    code = main(["discover", str(tmp_path / "data.csv"), "--nominal", str(tmp_path / "nominal.toml"),
+                 "--library", "poly:2,input", "--draws", "30", "--burn-in", "5", "--chains", "1", "--quiet"])
+    assert code == 0
+    assert capsys.readouterr().out.startswith("x2:")
+
+
+def test_demo_end_to_end(tmp_path):
+    out = tmp_path / "demo"
+    proc = subprocess.run(
+        [sys.executable, "-m", "dtwin_jax.cli", "demo", "--out-dir", str(out), "--draws", "300", "--burn-in", "100", "--chains", "2"],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "x2: -" in proc.stdout and "x1**3" in proc.stdout
+    doc = json.loads((out / "result.json").read_text())
+    assert [t["expr"] for t in doc["equations"][0]["terms"]] == ["x1**3"]
+    assert (out / "pip.png").stat().st_size > 10_000
+    # The demo's own files feed `discover`.
+    proc = subprocess.run(
+        [sys.executable, "-m", "dtwin_jax.cli", "discover", str(out / "measurements.npz"), "--nominal", str(out / "nominal.toml"),
+         "--library", "poly:3,input", "--draws", "200", "--burn-in", "100", "--chains", "1", "--quiet"],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "x1**3" in proc.stdout
