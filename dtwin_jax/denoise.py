@@ -31,7 +31,7 @@ from dtwin_jax.measurement import (
 )
 from dtwin_jax.systems import LinearSecondOrder
 
-__all__ = ["auto_half_width", "noise_std", "savgol_states", "kinematic_smoother"]
+__all__ = ["auto_half_width", "noise_std", "savgol_states", "kinematic_smoother", "input_noise_variance"]
 
 _ORDER = 4
 
@@ -158,3 +158,29 @@ def kinematic_smoother(
         e_idx = jnp.arange(2 * d, 2 * d + E)
         out = out.at[:, 2 * d :].set(jax.vmap(chain1)(e_idx).T)
     return out
+
+
+def input_noise_variance(nominal: LinearSecondOrder, xs, u, rates, half_width: int) -> np.ndarray:
+    """Variance ``(n,)`` of white noise on the measured inputs, from the measured rates.
+
+    A white input cannot be told from white noise on its own, but the accelerations see only
+    the true input: the high-frequency parts of ``r = xdot - f(x, 0)`` and ``u`` covary through
+    ``M^-1 B`` times the true input's variance, while ``u`` alone carries true + noise.
+    ``xs``, ``u``, ``rates`` are ``(R, N, .)``.
+    """
+    d = nominal.d
+    vel = np.asarray(nominal.velocity_index)
+    gain = np.linalg.solve(np.asarray(nominal.M), np.asarray(nominal.B))  # (d, n)
+    zero = jnp.zeros(u.shape[-1])
+    r = np.stack([
+        np.asarray(rd)[:, vel] - np.asarray(nominal.rate_batch(jnp.asarray(x), jnp.broadcast_to(zero, uu.shape)))[:, vel]
+        for x, uu, rd in zip(xs, u, rates)
+    ])
+    core = slice(half_width, -half_width)
+    hp_r = (r - np.asarray(smooth(r, half_width, _ORDER)))[:, core].reshape(-1, d)
+    hp_u = (u - np.asarray(smooth(u, half_width, _ORDER)))[:, core].reshape(-1, u.shape[-1])
+    cov_ru = hp_r.T @ hp_u / hp_r.shape[0]  # (d, n) = gain @ cov(u_true)
+    var_true = np.diag(np.linalg.lstsq(gain, cov_ru, rcond=None)[0])
+    var_meas = np.mean(hp_u**2, axis=0)
+    h0 = float(savgol_coefficients(half_width, _ORDER)[half_width])
+    return np.maximum(var_meas - var_true, 0.0) / (1.0 - h0)

@@ -1,11 +1,9 @@
-"""Updating a digital twin: nominal removed -> targets and library -> sampler -> posterior.
+"""Updating a digital twin: measurements -> denoised states -> targets and library ->
+sampler -> posterior -> updated twin.
 
-Framework 1 (input-output, the paper's Section 4.1): with measured states ``x``, inputs ``u``
-and rates ``xdot`` (or rates estimated from ``x``), the nominal model is removed from the
-measured rates (Eq. 14), ``y_i = xdot_i - f_i(x, u)``, and every regressed state ``i``
-(velocities and extra states; the kinematic rows are exact) is a sparse regression
-``y_i = L(x, u) theta_i`` sampled by the spike-and-slab Gibbs kernel, all equations in one
-vmapped call.
+Framework 1 (input-output, the paper's Section 4.1): measured states ``x``, inputs ``u`` and
+rates ``xdot`` (or rates estimated from ``x``); every regressed equation is sampled by the
+spike-and-slab Gibbs kernel, all equations in one vmapped call.
 """
 
 from __future__ import annotations
@@ -20,17 +18,17 @@ import numpy as np
 from dtwin_jax import sampler
 from dtwin_jax.data import Records, check_records
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_library
-from dtwin_jax.denoise import auto_half_width, kinematic_smoother, savgol_states
+from dtwin_jax.denoise import auto_half_width, input_noise_variance, kinematic_smoother, savgol_states
 from dtwin_jax.measurement import smooth
 from dtwin_jax.posterior import EquationPosterior
 from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.targets import correct_input_noise, equation_stats, input_output_targets
 
 __all__ = [
     "SamplerSettings",
     "UpdateResult",
     "UpdatedTwin",
     "denoise_states",
-    "input_output_targets",
     "update_input_output",
 ]
 
@@ -166,86 +164,10 @@ def denoise_states(records: Records, nominal: LinearSecondOrder, smoothing="auto
     return np.asarray(savgol_states(records.x, hw)), {"method": "savitzky-golay", "order": 4, "half_width": hw}
 
 
-def input_output_targets(nominal: LinearSecondOrder, x, u, xdot) -> jax.Array:
-    """Eq. 14: measured rates minus the nominal rates of the regressed states.
-
-    ``x (N, m)``, ``u (N, n)``, ``xdot (N, m)`` -> ``(N, len(nominal.regressed_index))``.
-    """
-    idx = jnp.asarray(nominal.regressed_index)
-    return (jnp.asarray(xdot) - nominal.rate_batch(jnp.asarray(x), jnp.asarray(u)))[:, idx]
-
-
 def _library(library, nominal: LinearSecondOrder, num_inputs: int) -> Library:
     if isinstance(library, Library):
         return library
     return parse_library(library or DEFAULT_LIBRARY, nominal.m, num_inputs)
-
-
-def equation_stats(L, Y) -> sampler.SuffStats:
-    """Sufficient statistics of every target column of ``Y (N, q)`` on one library ``L (N, K)``,
-    batched over the ``q`` equations."""
-    L = jnp.asarray(L)
-    Y = jnp.asarray(Y)
-    gram = L.T @ L
-    return sampler.SuffStats(
-        jnp.broadcast_to(gram, (Y.shape[1],) + gram.shape),
-        (L.T @ Y).T,
-        jnp.sum(Y * Y, axis=0),
-        jnp.full(Y.shape[1], float(L.shape[0])),
-    )
-
-
-def input_noise_variance(nominal: LinearSecondOrder, xs, u, rates, half_width: int) -> np.ndarray:
-    """Variance ``(n,)`` of white noise on the measured inputs, from the measured rates.
-
-    A white input cannot be told from white noise on its own, but the accelerations see only
-    the true input: the high-frequency parts of ``r = xdot - f(x, 0)`` and ``u`` covary through
-    ``M^-1 B`` times the true input's variance, while ``u`` alone carries true + noise.
-    ``xs``, ``u``, ``rates`` are ``(R, N, .)``.
-    """
-    from dtwin_jax.denoise import _ORDER
-    from dtwin_jax.measurement import savgol_coefficients
-
-    d = nominal.d
-    vel = np.asarray(nominal.velocity_index)
-    gain = np.linalg.solve(np.asarray(nominal.M), np.asarray(nominal.B))  # (d, n)
-    zero = np.zeros(u.shape[-1])
-    r = np.stack([
-        np.asarray(rd)[:, vel] - np.asarray(nominal.rate_batch(jnp.asarray(x), jnp.asarray(np.broadcast_to(zero, uu.shape))))[:, vel]
-        for x, uu, rd in zip(xs, u, rates)
-    ])
-    core = slice(half_width, -half_width)
-    hp_r = (r - np.asarray(smooth(r, half_width, _ORDER)))[:, core].reshape(-1, d)
-    hp_u = (u - np.asarray(smooth(u, half_width, _ORDER)))[:, core].reshape(-1, u.shape[-1])
-    cov_ru = hp_r.T @ hp_u / hp_r.shape[0]  # (d, n) = gain @ cov(u_true)
-    var_true = np.diag(np.linalg.lstsq(gain, cov_ru, rcond=None)[0])
-    var_meas = np.mean(hp_u**2, axis=0)
-    h0 = float(savgol_coefficients(half_width, _ORDER)[half_width])
-    del d
-    return np.maximum(var_meas - var_true, 0.0) / (1.0 - h0)
-
-
-def correct_input_noise(stats: sampler.SuffStats, lib: Library, nominal: LinearSecondOrder, noise_var) -> sampler.SuffStats:
-    """Remove the input noise's contribution to the statistics (errors in variables).
-
-    The noise ``n`` on ``u_j`` sits in the library column ``u_j`` (adding ``N var_j`` to its
-    squared norm) and, through the removed nominal ``M^-1 B u``, in every velocity target with
-    the opposite sign (adding ``-N (M^-1 B)_ij var_j`` to ``L^T y``). Unremoved, it shows up as
-    a spurious ``u_j`` term at high noise.
-    """
-    gain = np.linalg.solve(np.asarray(nominal.M), np.asarray(nominal.B))  # (d, n)
-    gram, xty = np.array(stats.gram), np.array(stats.xty)
-    n_rows = float(np.asarray(stats.n)[0])
-    regressed = nominal.regressed_index
-    for j, name in enumerate(nominal.input_names):
-        if name not in lib.names:
-            continue
-        k = lib.names.index(name)
-        gram[:, k, k] -= n_rows * noise_var[j]
-        for e, i in enumerate(regressed):
-            if i in nominal.velocity_index:
-                xty[e, k] += n_rows * gain[i - nominal.d, j] * noise_var[j]
-    return stats._replace(gram=jnp.asarray(gram), xty=jnp.asarray(xty))
 
 
 def _sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed: int, progress: bool):
