@@ -324,7 +324,7 @@ def _indicator_sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrio
 
 
 def _max_active(K: int, max_active: int | None) -> int:
-    return min(K, 64) if max_active is None else min(K, int(max_active))
+    return min(K, 32) if max_active is None else min(K, int(max_active))
 
 
 def step(
@@ -336,7 +336,7 @@ def step(
 ) -> tuple[GibbsState, GibbsInfo]:
     """One Gibbs sweep. Pure: the same key and state give the same result.
 
-    ``max_active`` (static, default ``min(K, 64)``) caps the number of active terms; the
+    ``max_active`` (static, default ``min(K, 32)``) caps the number of active terms; the
     sampler then targets the prior truncated to models of at most that size.
     """
     k_ind, k_sig, k_theta, k_v, k_p = jax.random.split(key, 5)
@@ -394,6 +394,7 @@ def sample(
     p0: float = 0.1,
     v_s: float = 10.0,
     max_active: int | None = None,
+    chain_method: str | None = None,
     progress: bool = False,
     chunk: int | None = None,
 ) -> GibbsTrace:
@@ -402,6 +403,9 @@ def sample(
     Returns a :class:`GibbsTrace` with leading axes ``(num_chains, num_draws)``; ``theta`` is in
     the units of ``y`` per unit of each library column and ``sigma2`` in units of ``y**2``.
     All chains start from the greedy initial state (see :func:`init`) with their own keys.
+    ``chain_method`` is ``"vectorized"`` (vmap over chains) or ``"sequential"`` (``lax.map``);
+    the default picks vectorized on accelerators and sequential on CPU, where XLA runs the
+    vmapped indicator loop 2-4x slower per chain (measured in benchmarks/sampler_speed.py).
     Jittable and vmappable (over ``key`` and ``stats``) when ``progress`` is False. With
     ``progress`` the chains advance in chunks of ``chunk`` sweeps between updates of a progress
     bar; the draws are identical either way.
@@ -409,12 +413,11 @@ def sample(
     scaled, col, ys = standardize(stats)
     total = num_burnin + num_draws
     keys, states = _setup(key, scaled, prior, p0, v_s, max_active, num_chains, total)
+    method = chain_method or default_batch_method()
     if progress:
-        trace = _run_with_progress(keys, states, scaled, prior, max_active, total, chunk)
+        trace = _run_with_progress(keys, states, scaled, prior, max_active, method, total, chunk)
     else:
-        _, trace = jax.vmap(_run_keys, in_axes=(0, 0, None, None, None))(
-            keys, states, scaled, prior, max_active
-        )
+        _, trace = _run_chains(keys, states, scaled, prior, max_active, method)
     trace = jax.tree.map(lambda a: a[:, num_burnin:], trace)
     factor = ys / col
     return trace._replace(theta=trace.theta * factor, sigma2=trace.sigma2 * ys**2)
@@ -439,12 +442,28 @@ def _run_keys(keys, state, stats, prior, max_active=None):
     return jax.lax.scan(one, state, keys)
 
 
-_run_keys_jit = jax.jit(
-    jax.vmap(_run_keys, in_axes=(0, 0, None, None, None)), static_argnums=(3, 4)
-)
+def default_batch_method() -> str:
+    """``"vectorized"`` on GPU/TPU, ``"sequential"`` on CPU."""
+    return "sequential" if jax.default_backend() == "cpu" else "vectorized"
 
 
-def _run_with_progress(keys, states, stats, prior, max_active, total, chunk):
+def batch_map(fn, method: str, *args):
+    """``fn`` over the leading axis of ``args``: ``jax.vmap`` or ``lax.map`` by ``method``."""
+    if method == "vectorized":
+        return jax.vmap(fn)(*args)
+    if method == "sequential":
+        return jax.lax.map(lambda a: fn(*a), args)
+    raise ValueError(f"unknown batch method {method!r} (vectorized or sequential)")
+
+
+def _run_chains(keys, states, stats, prior, max_active, method):
+    return batch_map(lambda k, s: _run_keys(k, s, stats, prior, max_active), method, keys, states)
+
+
+_run_chains_jit = jax.jit(_run_chains, static_argnums=(3, 4, 5))
+
+
+def _run_with_progress(keys, states, stats, prior, max_active, method, total, chunk):
     from tqdm.auto import tqdm
 
     chunk = chunk or max(1, -(-total // 20))
@@ -452,7 +471,7 @@ def _run_with_progress(keys, states, stats, prior, max_active, total, chunk):
     with tqdm(total=total, desc="Gibbs sweeps", unit="sweep", leave=False) as bar:
         for start in range(0, total, chunk):
             ks = keys[:, start : start + chunk]
-            states, trace = _run_keys_jit(ks, states, stats, prior, max_active)
+            states, trace = _run_chains_jit(ks, states, stats, prior, max_active, method)
             jax.block_until_ready(trace)
             pieces.append(trace)
             bar.update(ks.shape[1])
@@ -461,6 +480,8 @@ def _run_with_progress(keys, states, stats, prior, max_active, total, chunk):
 
 sample_jit = jax.jit(
     sample,
-    static_argnames=("num_draws", "num_burnin", "num_chains", "prior", "max_active", "progress", "chunk"),
+    static_argnames=(
+        "num_draws", "num_burnin", "num_chains", "prior", "max_active", "chain_method", "progress", "chunk"
+    ),
 )
 sample_jit.__doc__ = "``jax.jit`` of :func:`sample` (``progress`` must be False)."

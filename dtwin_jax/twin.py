@@ -194,8 +194,11 @@ def _sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed:
             for i in range(q)
         ]
         return jax.tree.map(lambda *a: jnp.stack(a), *traces)
-    run = jax.vmap(lambda k, s: sampler.sample_jit(k, s, p0=settings.p0, v_s=settings.v_s, **kwargs))
-    return run(keys, stats)
+    method = sampler.default_batch_method()
+    return sampler.batch_map(
+        lambda k, s: sampler.sample_jit(k, s, p0=settings.p0, v_s=settings.v_s, chain_method=method, **kwargs),
+        method, keys, stats,
+    )
 
 
 def update_input_output(
