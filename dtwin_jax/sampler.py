@@ -145,12 +145,6 @@ def _factor(gram, xty, gamma, v_s):
     return chol, logdet, mean, quad, mm
 
 
-def _inverse(chol, mm):
-    """``A^-1`` restricted to the active set (zeros elsewhere)."""
-    eye = jnp.eye(chol.shape[0], dtype=chol.dtype)
-    return cho_solve((chol, True), eye) * mm
-
-
 # --- initialisation --------------------------------------------------------------------
 
 

@@ -7,6 +7,7 @@ states; the kinematic rows are exact), and each ``y_i`` is regressed on one libr
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 

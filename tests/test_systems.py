@@ -11,7 +11,6 @@ from dtwin_jax.errors import DataError
 from dtwin_jax.systems import (
     EXAMPLES,
     LinearSecondOrder,
-    PerturbedSystem,
     example1,
     example2,
     example3,
