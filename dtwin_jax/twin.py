@@ -17,6 +17,7 @@ import numpy as np
 
 from dtwin_jax import sampler
 from dtwin_jax.data import Records, check_records
+from dtwin_jax.errors import DataError
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_library
 from dtwin_jax.denoise import auto_half_width, input_noise_variance, kinematic_smoother, savgol_states
 from dtwin_jax.measurement import smooth
@@ -225,16 +226,14 @@ def update_input_output(
     start = time.perf_counter()
     rec = check_records(t, x, u, xdot, nominal)
     if rec.u is None:
-        from dtwin_jax.errors import DataError
-
         raise DataError("input-output update needs measured inputs 'u'")
     lib = _library(library, nominal, nominal.n)
+    hw = auto_half_width(nominal, rec.dt, rec.t.size)
     xs, smoothing_info = denoise_states(rec, nominal, smoothing)
     if rec.xdot is not None:
         rates = rec.xdot
         rate_source = "measured"
     else:
-        hw = auto_half_width(nominal, rec.dt, rec.t.size)
         rates = np.asarray(smooth(rec.x, hw, order=4, deriv=1, dt=rec.dt))
         rate_source = f"savitzky-golay derivative (order 4, half width {hw})"
     R, N, m = rec.x.shape
@@ -246,7 +245,6 @@ def update_input_output(
     stats = equation_stats(L, Y)
     noise_var = None
     if rec.xdot is not None and smoothing is not None and lib.uses_inputs:
-        hw = auto_half_width(nominal, rec.dt, rec.t.size)
         noise_var = input_noise_variance(nominal, xs, rec.u, rates, hw)
         stats = correct_input_noise(stats, lib, nominal, noise_var)
     trace = _sample_equations(stats, settings, seed, progress)
