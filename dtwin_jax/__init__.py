@@ -14,7 +14,13 @@ from dtwin_jax.errors import DataError  # noqa: E402
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, parse_library  # noqa: E402
 from dtwin_jax.measurement import measure  # noqa: E402
 from dtwin_jax.systems import LinearSecondOrder, PerturbedSystem, simulate  # noqa: E402
-from dtwin_jax.twin import SamplerSettings, UpdatedTwin, UpdateResult, update_input_output  # noqa: E402
+from dtwin_jax.twin import (  # noqa: E402
+    SamplerSettings,
+    UpdatedTwin,
+    UpdateResult,
+    update_input_output,
+    update_output_only,
+)
 
 __all__ = [
     "DEFAULT_LIBRARY",
@@ -31,5 +37,6 @@ __all__ = [
     "simulate",
     "systems",
     "update_input_output",
+    "update_output_only",
 ]
 __version__ = "0.1.0"

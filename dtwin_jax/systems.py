@@ -21,11 +21,14 @@ __all__ = [
     "LinearSecondOrder",
     "PerturbedSystem",
     "simulate",
+    "diffusion_matrix",
+    "simulate_sde",
     "Example",
     "example1",
     "example2",
     "example3",
     "simulate_example",
+    "simulate_example_sde",
     "EXAMPLES",
 ]
 
@@ -205,6 +208,73 @@ def simulate(
     return x, xdot
 
 
+def diffusion_matrix(nominal: LinearSecondOrder) -> Float[Array, "m n"]:
+    """`G (m, n)` of `dX = (f + h) dt + G dB`: the force `B dB` enters the velocity rows as
+    `M^-1 B dB`; the kinematic and extra rows get no noise."""
+    d = nominal.d
+    gain = jnp.linalg.solve(nominal.M, nominal.B)
+    return jnp.zeros((nominal.m, nominal.n), gain.dtype).at[d : 2 * d].set(gain)
+
+
+def _sde_drift(s, y, system):
+    return system.rate(y, jnp.zeros(system_nominal(system).n, y.dtype))
+
+
+def _sde_diffusion(s, y, system):
+    return diffusion_matrix(system_nominal(system))
+
+
+def system_nominal(system: PerturbedSystem | LinearSecondOrder) -> LinearSecondOrder:
+    """The nominal model of a system (itself when it is nominal)."""
+    return system if isinstance(system, LinearSecondOrder) else system.nominal
+
+
+@eqx.filter_jit
+def simulate_sde(
+    system: PerturbedSystem | LinearSecondOrder,
+    x0: Float[Array, " m"],
+    t: Float[Array, " N"],
+    key: Array,
+    *,
+    substeps: int = 4,
+) -> Float[Array, "N m"]:
+    """Sample the Ito SDE `dX = (f(X) + h(X)) dt + G dB` on a uniform grid `t (N,)` s.
+
+    The force is `B dB` with `B` the nominal input matrix and `B (n,)` a unit-intensity
+    Brownian motion, so `G = diffusion_matrix(nominal)` and the diffusion of velocity `i` is
+    `Gamma_ii = (G G^T)_ii`. Integrated with ShARK (strong order 1.5 for additive noise)
+    at `dt / substeps`; Euler-Maruyama at 1 ms doubles the variance of these oscillators.
+    Vmap over `key` for an ensemble. Returns `x (N, m)` with `x[0] = x0`.
+    """
+    float_ = jnp.result_type(float)
+    t, x0 = jnp.asarray(t, float_), jnp.asarray(x0, float_)
+    if t.ndim != 1 or t.shape[0] < 2:
+        raise DataError(f"time grid t must have shape (N,) with N >= 2, got {t.shape}")
+    nominal = system_nominal(system)
+    N = t.shape[0]
+    fine = jnp.linspace(t[0], t[-1], (N - 1) * substeps + 1)
+    brownian = diffrax.UnsafeBrownianPath(
+        shape=(nominal.n,), key=key, levy_area=diffrax.SpaceTimeLevyArea
+    )
+    terms = diffrax.MultiTerm(
+        diffrax.ODETerm(_sde_drift), diffrax.ControlTerm(_sde_diffusion, brownian)
+    )
+    sol = diffrax.diffeqsolve(
+        terms,
+        diffrax.ShARK(),
+        t0=t[0],
+        t1=t[-1],
+        dt0=None,
+        y0=x0,
+        args=system,
+        saveat=diffrax.SaveAt(steps=True),
+        stepsize_controller=diffrax.StepTo(ts=fine),
+        max_steps=(N - 1) * substeps,
+        adjoint=diffrax.ForwardMode(),  # UnsafeBrownianPath cannot be checkpointed
+    )
+    return jnp.concatenate([x0[None], sol.ys[substeps - 1 :: substeps]])
+
+
 # ---------------------------------------------------------------------------
 # Examples (paper, Table 1)
 
@@ -227,6 +297,13 @@ class Example(NamedTuple):
     description: str
     # Terms a 1 s window at 5% noise can identify (None: all of `true_terms`).
     identifiable_terms: dict[str, tuple[str, ...]] | None = None
+
+    def true_diffusion(self) -> dict[str, float]:
+        """`Gamma_ii = (sigma_i / m_i)^2` of every velocity state under `simulate_sde`."""
+        nominal = self.system.nominal
+        G = np.asarray(diffusion_matrix(nominal))
+        gamma = np.sum(G * G, axis=1)
+        return {nominal.state_names[i]: float(gamma[i]) for i in nominal.velocity_index}
 
     def identifiable(self) -> dict[str, dict[str, float]]:
         """`true_terms` restricted to the identifiable terms."""
@@ -400,3 +477,28 @@ def simulate_example(
     x, xdot = simulate(example.system, x0, t, u)
     return {"t": t, "x": x, "xdot": xdot, "u": u}
 
+
+
+def simulate_example_sde(
+    example: Example,
+    key: Array,
+    *,
+    num_records: int = 1,
+    duration: float | None = None,
+    dt: float | None = None,
+    substeps: int = 4,
+) -> dict[str, Array]:
+    """Framework 2: an ensemble of `R = num_records` independent records of the example
+    driven by Brownian forcing (`simulate_sde`), all from `example.x0`.
+
+    Returns `{"t": (N,), "x": (R, N, m)}`.
+    """
+    duration = example.duration if duration is None else duration
+    dt = example.dt if dt is None else dt
+    N = int(round(duration / dt)) + 1
+    if N < 3:
+        raise DataError(f"simulation needs at least 3 samples, got duration/dt = {N - 1}")
+    t = jnp.arange(N) * dt
+    keys = jax.random.split(key, num_records)
+    x = jax.vmap(lambda k: simulate_sde(example.system, example.x0, t, k, substeps=substeps))(keys)
+    return {"t": t, "x": x}

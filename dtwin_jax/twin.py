@@ -4,6 +4,10 @@ sampler -> posterior -> updated twin.
 Framework 1 (input-output, the paper's Section 4.1): measured states ``x``, inputs ``u`` and
 rates ``xdot`` (or rates estimated from ``x``); every regressed equation is sampled by the
 spike-and-slab Gibbs kernel, all equations in one vmapped call.
+
+Framework 2 (output-only, Section 4.2): measured states only; the drift perturbation and the
+diffusion of every velocity come from Kramers-Moyal targets (:mod:`dtwin_jax.kramers_moyal`),
+sampled by the same kernel.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import sampler
+from dtwin_jax import kramers_moyal, sampler
 from dtwin_jax.data import Records, check_records
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_library
@@ -31,7 +35,15 @@ __all__ = [
     "UpdatedTwin",
     "denoise_states",
     "update_input_output",
+    "update_output_only",
+    "OUTPUT_ONLY_LIBRARY",
+    "DIFFUSION_LIBRARY",
 ]
+
+# The paper's library without inputs (none are measured), and a small state-dependent
+# diffusion library: constant, linear and quadratic.
+OUTPUT_ONLY_LIBRARY = DEFAULT_LIBRARY.replace(",input", "")
+DIFFUSION_LIBRARY = "poly:2"
 
 
 @dataclass(frozen=True)
@@ -272,3 +284,100 @@ def update_input_output(
             "samples": int(R * N),
         },
     )
+
+
+def _output_only_library(library, nominal: LinearSecondOrder, default: str) -> Library:
+    lib = library if isinstance(library, Library) else parse_library(library or default, nominal.m, 0)
+    if lib.uses_inputs:
+        raise DataError("library family 'input' needs measured inputs; output-only data has none")
+    return lib
+
+
+def _posteriors(trace, state_names, kind, names, pip_threshold):
+    trace = jax.tree.map(np.asarray, trace)
+    return [
+        EquationPosterior(state, kind, names, trace.gamma[j], trace.theta[j], trace.sigma2[j], pip_threshold)
+        for j, state in enumerate(state_names)
+    ]
+
+
+def update_output_only(
+    nominal: LinearSecondOrder,
+    t,
+    x,
+    *,
+    library: str | Library | None = None,
+    diffusion_library: str | Library | None = None,
+    pip_threshold: float = 0.5,
+    settings: SamplerSettings = SamplerSettings(),
+    seed: int = 0,
+    progress: bool = False,
+) -> UpdateResult:
+    """Discover drift perturbation and diffusion of ``nominal`` from measured states only.
+
+    ``t (N,)`` s, uniform; ``x (N, m)`` one record (a structure in service) or ``(R, N, m)``
+    an ensemble of independent records; both are pooled into one regression. ``library``
+    (drift, default :data:`OUTPUT_ONLY_LIBRARY`) and ``diffusion_library`` (default
+    :data:`DIFFUSION_LIBRARY`) are specs (formats.md) or :class:`Library`. The result holds
+    one ``drift`` equation per regressed state and one ``diffusion`` equation (the diagonal
+    ``Gamma_ii = (G G^T)_ii``, units of velocity^2 / s) per velocity.
+    """
+    start = time.perf_counter()
+    rec = check_records(t, x, None, None, nominal)
+    lib = _output_only_library(library, nominal, OUTPUT_ONLY_LIBRARY)
+    dlib = _output_only_library(diffusion_library, nominal, DIFFUSION_LIBRARY)
+    R, N, m = rec.x.shape
+    dt = rec.dt
+    hw = auto_half_width(nominal, dt, N)
+    noise_var = kramers_moyal.noise_variance(rec.x)
+    check_columns(np.asarray(lib(rec.x.reshape(-1, m)[:: max(1, R * N // 20000)])), lib.names)
+    drift_stats = kramers_moyal.drift_statistics(nominal, lib, rec.x, dt, noise_var, hw)
+    drift_stats = drift_stats._replace(gram=_nearest_pd(drift_stats.gram))
+    names = nominal.state_names
+    regressed = [names[i] for i in nominal.regressed_index]
+    trace = _sample_equations(drift_stats, settings, seed, progress)
+    drift = _posteriors(trace, regressed, "drift", lib.names, pip_threshold)
+    coef = np.stack([e.coefficients for e in drift])
+    twin = UpdatedTwin(nominal, lib, tuple(nominal.regressed_index), coef)
+    perturbation = lambda z: twin.perturbation(z, jnp.zeros(0, z.dtype))
+    Yg, Xg, window, tau = kramers_moyal.diffusion_targets(nominal, rec.x, dt, noise_var, perturbation)
+    Xg = np.asarray(Xg).reshape(-1, m)
+    Lg = np.asarray(dlib(Xg))
+    check_columns(Lg, dlib.names)
+    stats = equation_stats(Lg, np.asarray(Yg).reshape(-1, nominal.d))
+    # Overlapping windows: each target carries 1/tau of an independent sample's information.
+    scale = jnp.asarray(1.0 / tau)
+    stats = sampler.SuffStats(
+        stats.gram * scale[:, None, None], stats.xty * scale[:, None], stats.yty * scale, stats.n * scale
+    )
+    trace = _sample_equations(stats, settings, seed + 1, progress)
+    velocities = [names[i] for i in nominal.velocity_index]
+    diffusion = _posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
+    return UpdateResult(
+        mode="output-only",
+        nominal=nominal,
+        library=lib,
+        equations=drift + diffusion,
+        pip_threshold=pip_threshold,
+        settings=settings,
+        seconds=time.perf_counter() - start,
+        preprocessing={
+            "noise_std": np.sqrt(noise_var).tolist(),
+            "drift_direction_half_width": hw,
+            "diffusion_library": dlib.spec,
+            "diffusion_window": int(window),
+            "diffusion_autocorrelation_time": np.asarray(tau).tolist(),
+            "records": int(R),
+            "samples": int(R * N),
+        },
+    )
+
+
+def _nearest_pd(gram):
+    """Noise-corrected Gram matrices ``(q, K, K)`` can lose definiteness in directions the data
+    barely sees; floor the eigenvalues of the correlation matrix at ``1e-9``."""
+    scale = jnp.sqrt(jnp.maximum(jnp.diagonal(gram, axis1=-2, axis2=-1), 1e-300))
+    corr = gram / (scale[..., :, None] * scale[..., None, :])
+    w, v = jnp.linalg.eigh(corr)
+    corr = jnp.einsum("...ij,...j,...kj->...ik", v, jnp.maximum(w, 1e-9), v)
+    return corr * (scale[..., :, None] * scale[..., None, :])

@@ -1,0 +1,284 @@
+"""Framework 2 (output-only): Kramers-Moyal regression targets for drift and diffusion.
+
+The measured states are a diffusion `dX = (A X + S h(X)) dt + G dB` (Eq. 18): `A X` the
+linear nominal model, `h` the perturbation of the regressed rows (`S` puts them in place),
+`G G^T` the diffusion. Measured states carry white noise `eps ~ N(0, diag(s^2))`.
+
+Drift (Eq. 20a, 23a), with what makes it hold on stiff, noisy data:
+
+* The nominal model is removed with its exact one-step propagator, not an Euler step:
+  `dZ_k = X_{k+1} - Phi X_k` with `Phi = exp(A dt)`, and `Y_k = Psi^-1 dZ_k` with
+  `Psi = int_0^dt exp(A s) ds`, so `E[Y_k | X_k] = h(X_k) + dt/2 (Lh)(X_k) + O(dt^2)`.
+* The `dt/2 (Lh)` term (Ito-Taylor, `L` the generator along the drift) is not small when
+  `h` is stiff (example 2: 6% at 1 ms); it is kept in the regressors, `L + dt/2 J_L xdot`,
+  with `xdot` the Savitzky-Golay drift direction.
+* Noise `eps_k` sits in both `L(X_k)` and `Y_k` (through `-Psi^-1 Phi eps_k`); for Gaussian
+  noise Stein's lemma gives that covariance, `s_j^2 E[d_j L]`, which is added back.
+* Errors in variables: `E[L_a L_b (X + eps)] = L_a L_b + 1/2 sum_j s_j^2 d_j^2 (L_a L_b)`
+  to second order, and likewise for `L^T Y`; both are subtracted. For monomials up to
+  degree 3 this is exact (`x^3 -> x^3 - 3 s^2 x`).
+
+Diffusion (Eq. 20b, 23b): the squared increment `dZ_i^2 / dt` of a velocity after the drift
+is removed. White noise adds `2 s^2 / dt` to it, 38 times the diffusion itself for example 1
+at 5% noise, so raw squared increments are useless. The increments are pre-averaged over a
+triangular window of `K ~ sqrt(48 s^2 / (Gamma dt))` samples (Jacod et al. 2009), which
+balances signal and noise, and the known noise part is subtracted; the pre-averaged targets
+are `K`-correlated, so their statistics are divided by the integrated autocorrelation time.
+
+The noise variances `s_j^2` come from the data: `Var(X_{k+L} - X_k) = 2 s^2 + L Gamma dt +
+L^2 D` for lags `L = 1, 2, 3` cancels the diffusion `Gamma` and the drift `D`.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.scipy.linalg import expm
+
+from dtwin_jax import sampler
+from dtwin_jax.library import Library
+from dtwin_jax.measurement import smooth
+from dtwin_jax.systems import LinearSecondOrder
+
+__all__ = [
+    "state_matrix",
+    "propagators",
+    "noise_variance",
+    "drift_targets",
+    "drift_statistics",
+    "diffusion_targets",
+    "integrated_autocorrelation",
+    "unit_gramian",
+]
+
+
+def state_matrix(nominal: LinearSecondOrder) -> jax.Array:
+    """`A (m, m)` of the nominal model, `dX/dt = A X + B_x u`."""
+    d, m = nominal.d, nominal.m
+    gain = jnp.linalg.solve(nominal.M, jnp.concatenate([nominal.K, nominal.C], axis=1))
+    A = jnp.zeros((m, m), gain.dtype)
+    return A.at[:d, d : 2 * d].set(jnp.eye(d)).at[d : 2 * d, : 2 * d].set(-gain)
+
+
+def trapezoid_propagators(nominal: LinearSecondOrder, dt: float) -> tuple[jax.Array, jax.Array]:
+    """`(Psi_0, Psi_1)`, `(m, m)` each: `int_0^dt exp(A (dt - s)) h(s) ds = Psi_0 h(0) +
+    Psi_1 h(dt)` for `h` linear over the step (Van Loan)."""
+    A = state_matrix(nominal)
+    m = A.shape[0]
+    eye = jnp.eye(m, dtype=A.dtype)
+    block = jnp.zeros((3 * m, 3 * m), A.dtype)
+    block = block.at[:m, :m].set(A).at[:m, m : 2 * m].set(eye).at[m : 2 * m, 2 * m :].set(eye)
+    E = expm(block * dt)
+    Psi, ramp = E[:m, m : 2 * m], E[:m, 2 * m :] / dt
+    return Psi - ramp, ramp
+
+
+def propagators(nominal: LinearSecondOrder, dt: float) -> tuple[jax.Array, jax.Array]:
+    """`Phi = exp(A dt)` and `Psi = int_0^dt exp(A s) ds`, both `(m, m)` (Van Loan)."""
+    A = state_matrix(nominal)
+    m = A.shape[0]
+    block = jnp.zeros((2 * m, 2 * m), A.dtype).at[:m, :m].set(A).at[:m, m:].set(jnp.eye(m))
+    E = expm(block * dt)
+    return E[:m, :m], E[:m, m:]
+
+
+def noise_variance(x) -> np.ndarray:
+    """White measurement-noise variance `(m,)` of states `x (R, N, m)`, pooled over records.
+
+    Third and fourth differences: white noise adds `C(2p, p) s^2` to the mean square of the
+    `p`-th difference, a Brownian velocity `C(2p-2, p-1) Gamma dt`, and a smooth signal only
+    `O((omega dt)^(2p))`; `V_4 - (10/3) V_3 = (10/3) s^2` cancels the Brownian part.
+    """
+    x = np.asarray(x)
+    V3 = np.mean(np.diff(x, n=3, axis=1) ** 2, axis=(0, 1))
+    V4 = np.mean(np.diff(x, n=4, axis=1) ** 2, axis=(0, 1))
+    return np.maximum(0.3 * V4 - V3, 0.0)
+
+
+def drift_targets(nominal: LinearSecondOrder, x, dt: float) -> jax.Array:
+    """`Y_k = [Psi^-1 (X_{k+1} - Phi X_k)]_r`: `x (R, N, m)` -> `(R, N - 1, r)`, rate units."""
+    Phi, Psi = propagators(nominal, dt)
+    x = jnp.asarray(x)
+    dZ = x[:, 1:] - x[:, :-1] @ Phi.T
+    Y = jnp.linalg.solve(Psi, dZ.reshape(-1, nominal.m).T).T.reshape(dZ.shape)
+    return Y[..., jnp.asarray(nominal.regressed_index)]
+
+
+def _derivatives(lib: Library, x):
+    """`L (P, K)` and per state `j` the derivatives `d_j L`, `d_j^2 L` `(m, P, K)` at `x (P, m)`."""
+    m = x.shape[-1]
+    f = lambda z: lib.eval_single(z, None)
+
+    def single(xk):
+        def along(e):
+            g = lambda z: jax.jvp(f, (z,), (e,))[1]
+            return jax.jvp(g, (xk,), (e,))
+
+        d1, d2 = jax.vmap(along)(jnp.eye(m, dtype=xk.dtype))
+        return f(xk), d1, d2
+
+    L, d1, d2 = jax.vmap(single)(x)
+    return L, jnp.moveaxis(d1, 1, 0), jnp.moveaxis(d2, 1, 0)
+
+
+def drift_statistics(
+    nominal: LinearSecondOrder,
+    lib: Library,
+    x,
+    dt: float,
+    noise_var,
+    half_width: int,
+    *,
+    chunk: int = 20000,
+) -> sampler.SuffStats:
+    """Noise-corrected sufficient statistics of every regressed drift equation.
+
+    `x (R, N, m)` measured states, `noise_var (m,)` their white-noise variances,
+    `half_width` of the Savitzky-Golay filter for the time derivatives of the library.
+    The library at sample `k` is regressed on the target of the step `k+1 -> k+2`, which
+    holds no noise of sample `k`; the shift and the drift's change over the step are taken
+    into the regressors, `L + 3/2 dt dL/dt + 7/6 dt^2 d^2L/dt^2`. Returns `SuffStats`
+    batched over the `r` regressed states (see the module docstring).
+    """
+    x = jnp.asarray(x)
+    R, N, m = x.shape
+    reg = jnp.asarray(nominal.regressed_index)
+    Y = drift_targets(nominal, x, dt)[:, 1:].reshape(-1, reg.size)  # steps k+1 -> k+2
+    L_all = lib(x)  # (R, N, K)
+    ahead = 1.5 * dt * smooth(L_all, half_width, 4, deriv=1, dt=dt)
+    ahead += (7.0 / 6.0) * dt**2 * smooth(L_all, half_width, 4, deriv=2, dt=dt)
+    ahead = ahead[:, : N - 2].reshape(-1, lib.K)
+    X = x[:, : N - 2].reshape(-1, m)
+    s2 = jnp.asarray(noise_var)
+    K = lib.K
+    gram = jnp.zeros((K, K))
+    xty = jnp.zeros((reg.size, K))
+    for start in range(0, X.shape[0], chunk):
+        sl = slice(start, start + chunk)
+        L, d1, d2 = _derivatives(lib, X[sl])
+        Lt = L + ahead[sl]
+        # E[L_a L_b (X + eps)] = L_a L_b + 1/2 sum_j s_j^2 (d_j^2 L_a L_b + 2 d_j L_a d_j L_b
+        # + L_a d_j^2 L_b): subtract the noise's part, estimated at the noisy states.
+        W2 = jnp.einsum("j,jpk->pk", s2, d2)
+        D1 = (jnp.sqrt(s2)[:, None, None] * d1).reshape(-1, K)
+        cross = Lt.T @ W2
+        gram += Lt.T @ Lt - 0.5 * (cross + cross.T) - D1.T @ D1
+        xty += ((Lt - 0.5 * W2).T @ Y[sl]).T
+    q = reg.size
+    return sampler.SuffStats(
+        jnp.broadcast_to(gram, (q, K, K)), xty, jnp.sum(Y * Y, axis=0), jnp.full(q, float(X.shape[0]))
+    )
+
+
+def integrated_autocorrelation(y, max_lag: int) -> float:
+    """`1 + 2 sum_{l=1}^{max_lag} rho_l` of the centred series `y (R, P)`, at least 1."""
+    y = np.asarray(y) - np.mean(y)
+    var = np.mean(y * y)
+    rho = [np.mean(y[:, l:] * y[:, :-l]) / var for l in range(1, max_lag + 1)]
+    return float(max(1.0 + 2.0 * np.sum(rho), 1.0))
+
+
+def _noise_corrected(fn, s2):
+    """`f(x) - 1/2 sum_j s_j^2 d_j^2 f(x)`: unbiased to second order for `f` of noisy `x`."""
+    m = s2.shape[0]
+    eye = jnp.eye(m)
+
+    def corrected(x):
+        def second(e):
+            g = lambda z: jax.jvp(fn, (z,), (e,))[1]
+            return jax.jvp(g, (x,), (e,))[1]
+
+        return fn(x) - 0.5 * jnp.einsum("j,j...->...", s2, jax.vmap(second)(eye))
+
+    return corrected
+
+
+def diffusion_targets(
+    nominal: LinearSecondOrder,
+    x,
+    dt: float,
+    noise_var,
+    perturbation,
+    *,
+    window: int | None = None,
+):
+    """Pre-averaged, noise-corrected quadratic-variation targets of the velocity diffusions.
+
+    `x (R, N, m)` measured states; `noise_var (m,)`; `perturbation(x (m,)) -> (m,)` the
+    fitted drift perturbation `S h`, removed over each step by the trapezoid rule (an
+    Euler step leaves `dt^2/2 (Lh)`, which for example 2 exceeds the Brownian increment).
+    `h` is evaluated at the measured states with its second-order noise bias removed: a
+    smoothed state would be better per sample, but its error is slow and adds up over the
+    pre-averaging window. Returns `(Y (R, P, d), X (R, P, m), window, tau (d,))`:
+    `E[Y_ki] = Gamma_ii(X_k)`, the states at each window's centre, the pre-averaging window
+    `K` in samples, and each target's integrated autocorrelation time.
+    """
+    x = jnp.asarray(x)
+    R, N, m = x.shape
+    d = nominal.d
+    Phi, Psi = propagators(nominal, dt)
+    Psi0, Psi1 = trapezoid_propagators(nominal, dt)
+    vel = jnp.arange(d, 2 * d)
+    s2 = jnp.asarray(noise_var)
+    h = jax.vmap(jax.vmap(_noise_corrected(perturbation, s2)))(x)  # (R, N, m)
+    dZ = x[:, 1:] - x[:, :-1] @ Phi.T  # (R, N-1, m)
+    e = (dZ - h[:, :-1] @ Psi0.T - h[:, 1:] @ Psi1.T)[..., vel]  # residual velocity increments
+    # Noise eps_n enters e_{n-1} as a_n eps_n and e_n as -b_n eps_n (to first order), with
+    # a_n = I_v - Psi1 J_n, b_n = Phi_v + Psi0 J_n, J_n the Jacobian of h at X_n. Through a
+    # stiff h, displacement noise adds up over a window like an extra diffusion (example 1 at
+    # 10% noise: +10%), so the whole first-order structure is kept.
+    jac = jax.vmap(jax.vmap(jax.jacfwd(perturbation)))(x)  # (R, N, m, m)
+    a = jnp.eye(m)[vel] - jnp.einsum("vi,rnij->rnvj", Psi1[vel], jac)  # (R, N, d, m)
+    b = Phi[vel] + jnp.einsum("vi,rnij->rnvj", Psi0[vel], jac)
+    # Velocity noise from the lag-one covariance of e (its only source besides the drift,
+    # which is gone): E[e_{n-1} e_n] = -sum_i s_i^2 a_{n,vi} b_{n,vi}; the other s_i^2 are known.
+    ab = jnp.mean(a[:, 1:-1] * b[:, 1:-1], axis=(0, 1))  # (d, m)
+    lag1 = jnp.mean(e[:, :-1] * e[:, 1:], axis=(0, 1))
+    known = s2.at[vel].set(0.0)
+    s2_v = jnp.linalg.solve(ab[:, vel], -lag1 - ab @ known)
+    s2 = s2.at[vel].set(jnp.maximum(s2_v, 0.0))
+    A_n = jnp.einsum("rnvi,i->rnv", a * a, s2)
+    B_n = jnp.einsum("rnvi,i->rnv", b * b, s2)
+    C_n = jnp.einsum("rnvi,i->rnv", a * b, s2)
+    if window is None:
+        second = jnp.mean(e * e, axis=(0, 1))
+        noise = jnp.mean(A_n[:, 1:] + B_n[:, :-1], axis=(0, 1))
+        pilot = jnp.maximum(second - noise, 1e-3 * second)
+        ratio = float(jnp.max(noise / pilot)) if float(jnp.max(noise)) > 0 else 0.0
+        window = int(np.clip(np.round(np.sqrt(24.0 * ratio)), 2, max((N - 1) // 8, 2)))
+    j = np.arange(1, window) / window
+    g = np.minimum(j, 1.0 - j)  # (K-1,) triangular weights
+    P = e.shape[1] - g.size + 1
+    # Pre-averaged increments ebar_k = sum_i g_i e_{k+i}, k = 0..P-1.
+    ebar = sum(g[i] * e[:, i : i + P] for i in range(g.size))
+    # Noise eps_{k+j}, j = 0..K-1, carries g_{j-1} a - g_j b in ebar_k (g = 0 outside).
+    gp = np.concatenate([[0.0], g, [0.0]])  # gp[j] = g_{j-1}
+    bias = sum(
+        gp[jj] ** 2 * A_n[:, jj : jj + P]
+        - 2 * gp[jj] * gp[jj + 1] * C_n[:, jj : jj + P]
+        + gp[jj + 1] ** 2 * B_n[:, jj : jj + P]
+        for jj in range(g.size + 1)
+    )
+    g2 = float(np.sum(g * g))
+    # The diffusion part: g2 times the velocity part of the one-step Gramian (~ Gamma dt).
+    Y = (ebar**2 - bias) / (g2 * unit_gramian(nominal, dt)[None, None, :])
+    tau = np.array([integrated_autocorrelation(Y[..., i], 2 * window) for i in range(d)])
+    centre = window // 2
+    return Y, x[:, centre : centre + P], window, tau
+
+
+def unit_gramian(nominal: LinearSecondOrder, dt: float) -> jax.Array:
+    """`(d,)`: `int_0^dt (exp(A s) e_v)_v^2 ds` for each velocity `v`, the one-step variance
+    of that velocity per unit diffusion (`dt (1 - c dt / m + ...)`)."""
+    A = state_matrix(nominal)
+    m = A.shape[0]
+    out = []
+    for v in nominal.velocity_index:
+        ee = jnp.zeros((m, m), A.dtype).at[v, v].set(1.0)
+        block = jnp.zeros((2 * m, 2 * m), A.dtype)
+        block = block.at[:m, :m].set(-A).at[:m, m:].set(ee).at[m:, m:].set(A.T)
+        E = expm(block * dt)
+        Q = E[m:, m:].T @ E[:m, m:]
+        out.append(Q[v, v])
+    return jnp.stack(out)
