@@ -55,12 +55,18 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument("--mode", choices=("input-output", "output-only"), default=None,
                    help="default: input-output when the file has 'u', else output-only")
     d.add_argument("--library", default=None, help="comma-separated families (default: the paper's Eq. 24)")
+    d.add_argument("--diffusion-library", default=None,
+                   help="output-only: families for the diffusion (default poly:2)")
     d.add_argument("--out", default=None, help="result JSON path")
     d.add_argument("--plot", default=None, help="also write a PIP stem plot (PNG)")
     _add_sampler_args(d, draws=2000, burn_in=1000)
 
     demo = sub.add_parser("demo", help="simulate a paper example, update its twin, print and save results")
     demo.add_argument("--example", choices=("example1", "example2", "example3"), default="example1")
+    demo.add_argument("--mode", choices=("input-output", "output-only"), default="input-output",
+                      help="output-only: Brownian forcing, states measured, force not (default input-output)")
+    demo.add_argument("--records", type=_positive_int, default=100,
+                      help="output-only: ensemble size, records of 1 s each (default 100)")
     demo.add_argument("--noise", type=float, default=0.05, help="noise std as a fraction of each signal's std (default 0.05)")
     demo.add_argument("--out-dir", default="dtwin-demo", help="folder for the outputs (default ./dtwin-demo)")
     _add_sampler_args(demo, draws=2000, burn_in=1000)
@@ -80,21 +86,26 @@ def _check_threshold(value: float) -> None:
 
 def _discover(args) -> int:
     from dtwin_jax.io import load_measurements, load_nominal, write_json
-    from dtwin_jax.twin import update_input_output
+    from dtwin_jax.twin import update_input_output, update_output_only
 
     _check_threshold(args.pip_threshold)
     nominal = load_nominal(args.nominal)
     data = load_measurements(args.data)
     mode = args.mode or ("input-output" if "u" in data else "output-only")
     if mode == "output-only":
-        raise DataError("output-only mode is not available in this version (the file needs 'u')")
-    if "u" not in data:
-        raise DataError(f"input-output mode needs key 'u' in '{args.data}'")
-    result = update_input_output(
-        nominal, data["t"], data["x"], data["u"], data.get("xdot"),
-        library=args.library, smoothing=args.smoothing, pip_threshold=args.pip_threshold,
-        settings=_settings(args), seed=args.seed, progress=not args.quiet,
-    )
+        result = update_output_only(
+            nominal, data["t"], data["x"], library=args.library,
+            diffusion_library=args.diffusion_library, pip_threshold=args.pip_threshold,
+            settings=_settings(args), seed=args.seed, progress=not args.quiet,
+        )
+    else:
+        if "u" not in data:
+            raise DataError(f"input-output mode needs key 'u' in '{args.data}'")
+        result = update_input_output(
+            nominal, data["t"], data["x"], data["u"], data.get("xdot"),
+            library=args.library, smoothing=args.smoothing, pip_threshold=args.pip_threshold,
+            settings=_settings(args), seed=args.seed, progress=not args.quiet,
+        )
     print(result.summary())
     if args.out:
         write_json(args.out, result.to_json())
@@ -120,6 +131,8 @@ def _demo(args) -> int:
         raise DataError(f"--noise must be in [0, 1], got {args.noise}")
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
     ex = systems.EXAMPLES[args.example]()
+    if args.mode == "output-only":
+        return _demo_output_only(args, ex, say)
     say(f"[1/3] simulating {ex.name}: {ex.duration:g} s at {1 / ex.dt:g} Hz (diffrax, Dopri8) ...")
     sim = systems.simulate_example(ex, jax.random.key(args.seed))
     meas = measure(jax.random.key(args.seed + 1), sim["t"], sim["x"], sim["xdot"], sim["u"], level=args.noise)
@@ -145,6 +158,50 @@ def _demo(args) -> int:
     with atomic_path(out / "measurements.npz") as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, t=np.asarray(meas.t), x=np.asarray(meas.x), u=np.asarray(meas.u), xdot=np.asarray(meas.xdot))
+    write_nominal(out / "nominal.toml", nominal)
+    print(f"wrote {out}/result.json, {out}/pip.png, {out}/measurements.npz, {out}/nominal.toml")
+    return 0
+
+
+def _demo_output_only(args, ex, say) -> int:
+    import jax
+    import numpy as np
+
+    from dtwin_jax import systems
+    from dtwin_jax.io import atomic_path, write_json, write_nominal
+    from dtwin_jax.measurement import add_noise
+    from dtwin_jax.plots import plot_pip
+    from dtwin_jax.twin import update_output_only
+
+    ex = ex.for_output_only()
+    say(f"[1/3] simulating {ex.name} under Brownian forcing: {args.records} records of "
+        f"{ex.duration:g} s at {1 / ex.dt:g} Hz (diffrax ShARK) ...")
+    sim = systems.simulate_example_sde(ex, jax.random.key(args.seed), num_records=args.records)
+    x = np.asarray(add_noise(jax.random.key(args.seed + 1), sim["x"], args.noise))
+    nominal = ex.system.nominal
+    say(f"[2/3] updating the twin from the states only: library '{ex.library_output_only}' ...")
+    result = update_output_only(
+        nominal, sim["t"], x, library=ex.library_output_only, pip_threshold=args.pip_threshold,
+        settings=_settings(args), seed=args.seed, progress=not args.quiet,
+    )
+    out = Path(args.out_dir)
+    say(f"[3/3] writing results to {out}/")
+    print(f"{ex.name} (output-only): x0 = {np.asarray(ex.x0).tolist()}, {args.records} records")
+    print(f"noise {100 * args.noise:g}% on every state; {result.library.K} drift terms per equation")
+    print("discovered drift perturbation and diffusion (posterior mean ± std):")
+    print(result.summary())
+    print("truth:")
+    for state, terms in ex.true_terms.items():
+        print(f"{state}: " + " + ".join(f"{c:g} {t}" for t, c in terms.items()))
+    for state, gamma in ex.true_diffusion().items():
+        print(f"{state} [diffusion]: {gamma:g}")
+    diag = result.diagnostics()
+    print(f"R-hat max {diag['rhat_max']}, bulk ESS min {diag['ess_bulk_min']}, {diag['seconds']} s")
+    write_json(out / "result.json", result.to_json())
+    plot_pip(result, out / "pip.png")
+    with atomic_path(out / "measurements.npz") as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, t=np.asarray(sim["t"]), x=x)
     write_nominal(out / "nominal.toml", nominal)
     print(f"wrote {out}/result.json, {out}/pip.png, {out}/measurements.npz, {out}/nominal.toml")
     return 0

@@ -297,6 +297,19 @@ class Example(NamedTuple):
     description: str
     # Terms a 1 s window at 5% noise can identify (None: all of `true_terms`).
     identifiable_terms: dict[str, tuple[str, ...]] | None = None
+    # Framework 2 (Brownian forcing, states only): initial state, when it differs from x0.
+    x0_output_only: Float[Array, " m"] | None = None
+
+    @property
+    def library_output_only(self) -> str:
+        """`library` without the `input` family (no input is measured)."""
+        return ",".join(f for f in self.library.split(",") if f != "input")
+
+    def for_output_only(self) -> "Example":
+        """The example as framework 2 uses it (its `x0_output_only` as `x0`)."""
+        if self.x0_output_only is None:
+            return self
+        return self._replace(x0=self.x0_output_only)
 
     def true_diffusion(self) -> dict[str, float]:
         """`Gamma_ii = (sigma_i / m_i)^2` of every velocity state under `simulate_sde`."""
