@@ -118,12 +118,9 @@ def _discover(args) -> int:
 
 def _demo(args) -> int:
     import jax
-    import numpy as np
 
     from dtwin_jax import systems
-    from dtwin_jax.io import atomic_path, write_json, write_nominal
     from dtwin_jax.measurement import measure
-    from dtwin_jax.plots import plot_pip
     from dtwin_jax.twin import update_input_output
 
     _check_threshold(args.pip_threshold)
@@ -148,18 +145,8 @@ def _demo(args) -> int:
     print(f"noise {100 * args.noise:g}% on every signal; {result.library.K} candidate terms per equation")
     print("discovered perturbation (posterior mean ± std):")
     print(result.summary())
-    print("truth:")
-    for state, terms in ex.true_terms.items():
-        print(f"{state}: " + " + ".join(f"{c:g} {t}" for t, c in terms.items()))
-    diag = result.diagnostics()
-    print(f"R-hat max {diag['rhat_max']}, bulk ESS min {diag['ess_bulk_min']}, {diag['seconds']} s")
-    write_json(out / "result.json", result.to_json())
-    plot_pip(result, out / "pip.png")
-    with atomic_path(out / "measurements.npz") as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, t=np.asarray(meas.t), x=np.asarray(meas.x), u=np.asarray(meas.u), xdot=np.asarray(meas.xdot))
-    write_nominal(out / "nominal.toml", nominal)
-    print(f"wrote {out}/result.json, {out}/pip.png, {out}/measurements.npz, {out}/nominal.toml")
+    _finish_demo(ex, result, nominal, Path(args.out_dir),
+                 dict(t=meas.t, x=meas.x, u=meas.u, xdot=meas.xdot))
     return 0
 
 
@@ -168,9 +155,7 @@ def _demo_output_only(args, ex, say) -> int:
     import numpy as np
 
     from dtwin_jax import systems
-    from dtwin_jax.io import atomic_path, write_json, write_nominal
     from dtwin_jax.measurement import add_noise
-    from dtwin_jax.plots import plot_pip
     from dtwin_jax.twin import update_output_only
 
     ex = ex.for_output_only()
@@ -190,10 +175,21 @@ def _demo_output_only(args, ex, say) -> int:
     print(f"noise {100 * args.noise:g}% on every state; {result.library.K} drift terms per equation")
     print("discovered drift perturbation and diffusion (posterior mean ± std):")
     print(result.summary())
+    _finish_demo(ex, result, nominal, out, dict(t=sim["t"], x=x), diffusion=ex.true_diffusion())
+    return 0
+
+
+def _finish_demo(ex, result, nominal, out: Path, arrays: dict, diffusion: dict | None = None) -> None:
+    """Print the truth and diagnostics; write result.json, pip.png, measurements.npz, nominal.toml."""
+    import numpy as np
+
+    from dtwin_jax.io import atomic_path, write_json, write_nominal
+    from dtwin_jax.plots import plot_pip
+
     print("truth:")
     for state, terms in ex.true_terms.items():
         print(f"{state}: " + " + ".join(f"{c:g} {t}" for t, c in terms.items()))
-    for state, gamma in ex.true_diffusion().items():
+    for state, gamma in (diffusion or {}).items():
         print(f"{state} [diffusion]: {gamma:g}")
     diag = result.diagnostics()
     print(f"R-hat max {diag['rhat_max']}, bulk ESS min {diag['ess_bulk_min']}, {diag['seconds']} s")
@@ -201,10 +197,9 @@ def _demo_output_only(args, ex, say) -> int:
     plot_pip(result, out / "pip.png")
     with atomic_path(out / "measurements.npz") as tmp:
         with open(tmp, "wb") as f:
-            np.savez(f, t=np.asarray(sim["t"]), x=x)
+            np.savez(f, **{k: np.asarray(v) for k, v in arrays.items()})
     write_nominal(out / "nominal.toml", nominal)
     print(f"wrote {out}/result.json, {out}/pip.png, {out}/measurements.npz, {out}/nominal.toml")
-    return 0
 
 
 def main(argv=None) -> int:
