@@ -139,14 +139,12 @@ def _demo(args) -> int:
         nominal, meas.t, meas.x, meas.u, meas.xdot, library=ex.library, smoothing=args.smoothing,
         pip_threshold=args.pip_threshold, settings=_settings(args), seed=args.seed, progress=not args.quiet,
     )
-    out = Path(args.out_dir)
-    say(f"[3/3] writing results to {out}/")
-    print(f"{ex.name}: {ex.description}")
-    print(f"noise {100 * args.noise:g}% on every signal; {result.library.K} candidate terms per equation")
-    print("discovered perturbation (posterior mean ± std):")
-    print(result.summary())
-    _finish_demo(ex, result, nominal, Path(args.out_dir),
-                 dict(t=meas.t, x=meas.x, u=meas.u, xdot=meas.xdot))
+    _finish_demo(
+        ex, result, Path(args.out_dir), say, dict(t=meas.t, x=meas.x, u=meas.u, xdot=meas.xdot),
+        [f"{ex.name}: {ex.description}",
+         f"noise {100 * args.noise:g}% on every signal; {result.library.K} candidate terms per equation",
+         "discovered perturbation (posterior mean ± std):"],
+    )
     return 0
 
 
@@ -169,23 +167,28 @@ def _demo_output_only(args, ex, say) -> int:
         nominal, sim["t"], x, library=ex.library_output_only, pip_threshold=args.pip_threshold,
         settings=_settings(args), seed=args.seed, progress=not args.quiet,
     )
-    out = Path(args.out_dir)
-    say(f"[3/3] writing results to {out}/")
-    print(f"{ex.name} (output-only): x0 = {np.asarray(ex.x0).tolist()}, {args.records} records")
-    print(f"noise {100 * args.noise:g}% on every state; {result.library.K} drift terms per equation")
-    print("discovered drift perturbation and diffusion (posterior mean ± std):")
-    print(result.summary())
-    _finish_demo(ex, result, nominal, out, dict(t=sim["t"], x=x), diffusion=ex.true_diffusion())
+    _finish_demo(
+        ex, result, Path(args.out_dir), say, dict(t=sim["t"], x=x),
+        [f"{ex.name} (output-only): x0 = {np.asarray(ex.x0).tolist()}, {args.records} records",
+         f"noise {100 * args.noise:g}% on every state; {result.library.K} drift terms per equation",
+         "discovered drift perturbation and diffusion (posterior mean ± std):"],
+        diffusion=ex.true_diffusion(),
+    )
     return 0
 
 
-def _finish_demo(ex, result, nominal, out: Path, arrays: dict, diffusion: dict | None = None) -> None:
-    """Print the truth and diagnostics; write result.json, pip.png, measurements.npz, nominal.toml."""
+def _finish_demo(ex, result, out: Path, say, arrays: dict, header: list[str],
+                 diffusion: dict | None = None) -> None:
+    """Print the header, the discovered equations, the truth and diagnostics; write
+    result.json, pip.png, measurements.npz and nominal.toml to ``out``."""
     import numpy as np
 
     from dtwin_jax.io import atomic_path, write_json, write_nominal
     from dtwin_jax.plots import plot_pip
 
+    say(f"[3/3] writing results to {out}/")
+    print("\n".join(header))
+    print(result.summary())
     print("truth:")
     for state, terms in ex.true_terms.items():
         print(f"{state}: " + " + ".join(f"{c:g} {t}" for t, c in terms.items()))
@@ -198,7 +201,7 @@ def _finish_demo(ex, result, nominal, out: Path, arrays: dict, diffusion: dict |
     with atomic_path(out / "measurements.npz") as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, **{k: np.asarray(v) for k, v in arrays.items()})
-    write_nominal(out / "nominal.toml", nominal)
+    write_nominal(out / "nominal.toml", result.nominal)
     print(f"wrote {out}/result.json, {out}/pip.png, {out}/measurements.npz, {out}/nominal.toml")
 
 

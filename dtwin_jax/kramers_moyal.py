@@ -105,21 +105,18 @@ def drift_targets(nominal: LinearSecondOrder, x, dt: float) -> jax.Array:
     return Y[..., jnp.asarray(nominal.regressed_index)]
 
 
+def _directional(fn, x, e):
+    """First and second derivatives of `fn` at `x` along `e` (forward over forward)."""
+    g = lambda z: jax.jvp(fn, (z,), (e,))[1]
+    return jax.jvp(g, (x,), (e,))
+
+
 def _derivatives(lib: Library, x):
-    """`L (P, K)` and per state `j` the derivatives `d_j L`, `d_j^2 L` `(m, P, K)` at `x (P, m)`."""
-    m = x.shape[-1]
+    """Per state `j`, `d_j L` and `d_j^2 L`, each `(m, P, K)`, at `x (P, m)`."""
     f = lambda z: lib.eval_single(z, None)
-
-    def single(xk):
-        def along(e):
-            g = lambda z: jax.jvp(f, (z,), (e,))[1]
-            return jax.jvp(g, (xk,), (e,))
-
-        d1, d2 = jax.vmap(along)(jnp.eye(m, dtype=xk.dtype))
-        return f(xk), d1, d2
-
-    L, d1, d2 = jax.vmap(single)(x)
-    return L, jnp.moveaxis(d1, 1, 0), jnp.moveaxis(d2, 1, 0)
+    eye = jnp.eye(x.shape[-1], dtype=x.dtype)
+    d1, d2 = jax.vmap(lambda xk: jax.vmap(lambda e: _directional(f, xk, e))(eye))(x)
+    return jnp.moveaxis(d1, 1, 0), jnp.moveaxis(d2, 1, 0)
 
 
 def drift_statistics(
@@ -149,6 +146,7 @@ def drift_statistics(
     ahead = 1.5 * dt * smooth(L_all, half_width, 4, deriv=1, dt=dt)
     ahead += (7.0 / 6.0) * dt**2 * smooth(L_all, half_width, 4, deriv=2, dt=dt)
     ahead = ahead[:, : N - 2].reshape(-1, lib.K)
+    L_now = L_all[:, : N - 2].reshape(-1, lib.K)
     X = x[:, : N - 2].reshape(-1, m)
     s2 = jnp.asarray(noise_var)
     K = lib.K
@@ -156,8 +154,8 @@ def drift_statistics(
     xty = raw_xty = jnp.zeros((reg.size, K))
     for start in range(0, X.shape[0], chunk):
         sl = slice(start, start + chunk)
-        L, d1, d2 = _derivatives(lib, X[sl])
-        Lt = L + ahead[sl]
+        d1, d2 = _derivatives(lib, X[sl])
+        Lt = L_now[sl] + ahead[sl]
         # E[L_a L_b (X + eps)] = L_a L_b + 1/2 sum_j s_j^2 (d_j^2 L_a L_b + 2 d_j L_a d_j L_b
         # + L_a d_j^2 L_b): subtract the noise's part, estimated at the noisy states.
         W2 = jnp.einsum("j,jpk->pk", s2, d2)
@@ -194,11 +192,8 @@ def _noise_corrected(fn, s2):
     eye = jnp.eye(m)
 
     def corrected(x):
-        def second(e):
-            g = lambda z: jax.jvp(fn, (z,), (e,))[1]
-            return jax.jvp(g, (x,), (e,))[1]
-
-        return fn(x) - 0.5 * jnp.einsum("j,j...->...", s2, jax.vmap(second)(eye))
+        second = jax.vmap(lambda e: _directional(fn, x, e)[1])(eye)
+        return fn(x) - 0.5 * jnp.einsum("j,j...->...", s2, second)
 
     return corrected
 
@@ -260,14 +255,11 @@ def diffusion_targets(
     g = np.minimum(j, 1.0 - j)  # (K-1,) triangular weights
     P = e.shape[1] - g.size + 1
     # Pre-averaged increments ebar_k = sum_i g_i e_{k+i}, k = 0..P-1.
-    ebar = sum(g[i] * e[:, i : i + P] for i in range(g.size))
+    ebar = _window_sum(e, g)
     # Noise eps_{k+j}, j = 0..K-1, carries g_{j-1} a - g_j b in ebar_k (g = 0 outside).
-    gp = np.concatenate([[0.0], g, [0.0]])  # gp[j] = g_{j-1}
-    bias = sum(
-        gp[jj] ** 2 * A_n[:, jj : jj + P]
-        - 2 * gp[jj] * gp[jj + 1] * C_n[:, jj : jj + P]
-        + gp[jj + 1] ** 2 * B_n[:, jj : jj + P]
-        for jj in range(g.size + 1)
+    before, after = np.concatenate([[0.0], g]), np.concatenate([g, [0.0]])  # g_{j-1}, g_j
+    bias = (
+        _window_sum(A_n, before**2) - 2 * _window_sum(C_n, before * after) + _window_sum(B_n, after**2)
     )
     g2 = float(np.sum(g * g))
     # The diffusion part: g2 times the velocity part of the one-step Gramian (~ Gamma dt).
@@ -275,6 +267,14 @@ def diffusion_targets(
     tau = np.array([integrated_autocorrelation(Y[..., i], 2 * window) for i in range(d)])
     centre = window // 2
     return Y, x[:, centre : centre + P], window, tau
+
+
+def _window_sum(series, weights):
+    """`out_k = sum_i weights_i series_{k+i}` along axis 1 (valid part): `(R, n, c)` ->
+    `(R, n - len(weights) + 1, c)`, as one convolution over time."""
+    w = jnp.asarray(weights[::-1], series.dtype)
+    conv = lambda s: jnp.convolve(s, w, mode="valid")
+    return jax.vmap(jax.vmap(conv, in_axes=1, out_axes=1))(series)
 
 
 def unit_gramian(nominal: LinearSecondOrder, dt: float) -> jax.Array:
