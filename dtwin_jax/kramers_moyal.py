@@ -20,10 +20,10 @@ Drift (Eq. 20a, 23a), with what makes it hold on stiff, noisy data:
 
 Diffusion (Eq. 20b, 23b): the squared increment `dZ_i^2 / dt` of a velocity after the drift
 is removed. White noise adds `2 s^2 / dt` to it, 38 times the diffusion itself for example 1
-at 5% noise, so raw squared increments are useless. The increments are pre-averaged over a
-triangular window of `K ~ sqrt(48 s^2 / (Gamma dt))` samples (Jacod et al. 2009), which
-balances signal and noise, and the known noise part is subtracted; the pre-averaged targets
-are `K`-correlated, so their statistics are divided by the integrated autocorrelation time.
+at 5% noise, so raw squared increments are useless. Here the increments are pre-averaged over
+a triangular window of `K ~ sqrt(48 s^2 / (Gamma dt))` samples (Jacod et al. 2009), which
+balances signal and noise, and the known noise part is subtracted. That is a fast first
+guess; the diffusion itself is the likelihood maximum of :mod:`dtwin_jax.statespace`.
 
 The noise variances `s_j^2` come from the data: `Var(X_{k+L} - X_k) = 2 s^2 + L Gamma dt +
 L^2 D` for lags `L = 1, 2, 3` cancels the diffusion `Gamma` and the drift `D`.
@@ -47,9 +47,9 @@ __all__ = [
     "noise_variance",
     "drift_targets",
     "drift_statistics",
-    "diffusion_targets",
-    "integrated_autocorrelation",
+    "preaveraged_diffusion",
     "unit_gramian",
+    "process_covariances",
 ]
 
 
@@ -178,14 +178,6 @@ def drift_statistics(
     )
 
 
-def integrated_autocorrelation(y, max_lag: int) -> float:
-    """`1 + 2 sum_{l=1}^{max_lag} rho_l` of the centred series `y (R, P)`, at least 1."""
-    y = np.asarray(y) - np.mean(y)
-    var = np.mean(y * y)
-    rho = [np.mean(y[:, l:] * y[:, :-l]) / var for l in range(1, max_lag + 1)]
-    return float(max(1.0 + 2.0 * np.sum(rho), 1.0))
-
-
 def _noise_corrected(fn, s2):
     """`f(x) - 1/2 sum_j s_j^2 d_j^2 f(x)`: unbiased to second order for `f` of noisy `x`."""
     m = s2.shape[0]
@@ -198,7 +190,7 @@ def _noise_corrected(fn, s2):
     return corrected
 
 
-def diffusion_targets(
+def preaveraged_diffusion(
     nominal: LinearSecondOrder,
     x,
     dt: float,
@@ -207,16 +199,19 @@ def diffusion_targets(
     *,
     window: int | None = None,
 ):
-    """Pre-averaged, noise-corrected quadratic-variation targets of the velocity diffusions.
+    """Pre-averaged, noise-corrected quadratic variation of the velocities: `(Gamma (d,),
+    window)`, a fast first guess for :func:`statespace.diffusion_mle`.
 
     `x (R, N, m)` measured states; `noise_var (m,)`; `perturbation(x (m,)) -> (m,)` the
     fitted drift perturbation `S h`, removed over each step by the trapezoid rule (an
     Euler step leaves `dt^2/2 (Lh)`, which for example 2 exceeds the Brownian increment).
     `h` is evaluated at the measured states with its second-order noise bias removed: a
     smoothed state would be better per sample, but its error is slow and adds up over the
-    pre-averaging window. Returns `(Y (R, P, d), X (R, P, m), window, tau (d,))`:
-    `E[Y_ki] = Gamma_ii(X_k)`, the states at each window's centre, the pre-averaging window
-    `K` in samples, and each target's integrated autocorrelation time.
+    pre-averaging window. Good to a few percent while the noise is at most ~100 times the
+    Brownian increment per sample (example 1 at 10%); far beyond, the drift's residual
+    dominates (example 2 at 5%: +350%). Returns `(Gamma (d,), window)`, `Gamma` floored
+    at 1e-3 of the targets' mean magnitude so that it can start a search in `log Gamma`,
+    and the window `K` in samples.
     """
     x = jnp.asarray(x)
     R, N, m = x.shape
@@ -225,14 +220,15 @@ def diffusion_targets(
     Psi0, Psi1 = trapezoid_propagators(nominal, dt)
     vel = jnp.arange(d, 2 * d)
     s2 = jnp.asarray(noise_var)
-    h = jax.vmap(jax.vmap(_noise_corrected(perturbation, s2)))(x)  # (R, N, m)
+    # Jitted as a whole: eagerly, each primitive of the nested vmaps compiles on its own.
+    h = jax.jit(jax.vmap(jax.vmap(_noise_corrected(perturbation, s2))))(x)  # (R, N, m)
     dZ = x[:, 1:] - x[:, :-1] @ Phi.T  # (R, N-1, m)
     e = (dZ - h[:, :-1] @ Psi0.T - h[:, 1:] @ Psi1.T)[..., vel]  # residual velocity increments
     # Noise eps_n enters e_{n-1} as a_n eps_n and e_n as -b_n eps_n (to first order), with
     # a_n = I_v - Psi1 J_n, b_n = Phi_v + Psi0 J_n, J_n the Jacobian of h at X_n. Through a
     # stiff h, displacement noise adds up over a window like an extra diffusion (example 1 at
     # 10% noise: +10%), so the whole first-order structure is kept.
-    jac = jax.vmap(jax.vmap(jax.jacfwd(perturbation)))(x)  # (R, N, m, m)
+    jac = jax.jit(jax.vmap(jax.vmap(jax.jacfwd(perturbation))))(x)  # (R, N, m, m)
     a = jnp.eye(m)[vel] - jnp.einsum("vi,rnij->rnvj", Psi1[vel], jac)  # (R, N, d, m)
     b = Phi[vel] + jnp.einsum("vi,rnij->rnvj", Psi0[vel], jac)
     # Velocity noise from the lag-one covariance of e (its only source besides the drift,
@@ -253,7 +249,6 @@ def diffusion_targets(
         window = int(np.clip(np.round(np.sqrt(24.0 * ratio)), 2, max((N - 1) // 8, 2)))
     j = np.arange(1, window) / window
     g = np.minimum(j, 1.0 - j)  # (K-1,) triangular weights
-    P = e.shape[1] - g.size + 1
     # Pre-averaged increments ebar_k = sum_i g_i e_{k+i}, k = 0..P-1.
     ebar = _window_sum(e, g)
     # Noise eps_{k+j}, j = 0..K-1, carries g_{j-1} a - g_j b in ebar_k (g = 0 outside).
@@ -264,30 +259,37 @@ def diffusion_targets(
     g2 = float(np.sum(g * g))
     # The diffusion part: g2 times the velocity part of the one-step Gramian (~ Gamma dt).
     Y = (ebar**2 - bias) / (g2 * unit_gramian(nominal, dt)[None, None, :])
-    tau = np.array([integrated_autocorrelation(Y[..., i], 2 * window) for i in range(d)])
-    centre = window // 2
-    return Y, x[:, centre : centre + P], window, tau
+    gamma = jnp.mean(Y, axis=(0, 1))
+    return jnp.maximum(gamma, 1e-3 * jnp.mean(jnp.abs(Y), axis=(0, 1))), window
 
 
+@jax.jit
 def _window_sum(series, weights):
     """`out_k = sum_i weights_i series_{k+i}` along axis 1 (valid part): `(R, n, c)` ->
     `(R, n - len(weights) + 1, c)`, as one convolution over time."""
-    w = jnp.asarray(weights[::-1], series.dtype)
+    w = jnp.asarray(weights, series.dtype)[::-1]
     conv = lambda s: jnp.convolve(s, w, mode="valid")
     return jax.vmap(jax.vmap(conv, in_axes=1, out_axes=1))(series)
 
 
-def unit_gramian(nominal: LinearSecondOrder, dt: float) -> jax.Array:
-    """`(d,)`: `int_0^dt (exp(A s) e_v)_v^2 ds` for each velocity `v`, the one-step variance
-    of that velocity per unit diffusion (`dt (1 - c dt / m + ...)`)."""
+def process_covariances(nominal: LinearSecondOrder, dt: float) -> jax.Array:
+    """`(d, m, m)`: `int_0^dt exp(A s) e_v e_v^T exp(A^T s) ds` for each velocity `v`, the
+    one-step state covariance per unit diffusion of `v` under the nominal dynamics."""
     A = state_matrix(nominal)
     m = A.shape[0]
     out = []
     for v in nominal.velocity_index:
-        ee = jnp.zeros((m, m), A.dtype).at[v, v].set(1.0)
+        source = jnp.zeros((m, m), A.dtype).at[v, v].set(1.0)
         block = jnp.zeros((2 * m, 2 * m), A.dtype)
-        block = block.at[:m, :m].set(-A).at[:m, m:].set(ee).at[m:, m:].set(A.T)
+        block = block.at[:m, :m].set(-A).at[:m, m:].set(source).at[m:, m:].set(A.T)
         E = expm(block * dt)
-        Q = E[m:, m:].T @ E[:m, m:]
-        out.append(Q[v, v])
+        out.append(E[m:, m:].T @ E[:m, m:])
     return jnp.stack(out)
+
+
+def unit_gramian(nominal: LinearSecondOrder, dt: float) -> jax.Array:
+    """`(d,)`: the velocity entry of :func:`process_covariances`, the one-step variance of
+    each velocity per unit diffusion (`dt (1 - c dt / m + ...)`)."""
+    Q = process_covariances(nominal, dt)
+    v = jnp.asarray(nominal.velocity_index)
+    return Q[jnp.arange(v.size), v, v]

@@ -109,6 +109,23 @@ class Library(eqx.Module):
         """One sample: `x` shape `(m,)`, `u` shape `(n,)` -> shape `(K,)`."""
         return self(x, u)
 
+    def subset(self, keep) -> "Library":
+        """The library of the columns `keep` (indices or a `(K,)` mask), in library order.
+
+        Evaluating only the selected terms keeps an updated model cheap inside a solver.
+        """
+        keep = np.asarray(keep)
+        index = np.flatnonzero(keep) if keep.dtype == bool else keep.astype(int)
+        chosen = set(index.tolist())
+        blocks, names, start = [], [], 0
+        for family, idx in self.blocks:
+            sel = [k for k in range(len(idx)) if start + k in chosen]
+            if sel:
+                blocks.append((family, tuple(idx[k] for k in sel)))
+                names.extend(self.names[start + k] for k in sel)
+            start += len(idx)
+        return Library(tuple(names), self.num_states, self.num_inputs, self.spec, tuple(blocks))
+
 
 # Jitted so eager calls compile once per library and shape, not once per primitive.
 @functools.partial(jax.jit, static_argnums=0)

@@ -12,6 +12,7 @@ sampled by the same kernel.
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 
@@ -19,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import kramers_moyal, sampler
+from dtwin_jax import kramers_moyal, statespace, sampler
 from dtwin_jax.data import Records, check_records
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_library
@@ -184,34 +185,36 @@ def _library(library, nominal: LinearSecondOrder, num_inputs: int) -> Library:
 
 
 def _sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed: int, progress: bool):
-    """One vmapped sampler call over the batched statistics of every equation."""
+    """One sampler call over the batched statistics of every equation."""
     q = stats.xty.shape[0]
     keys = jax.random.split(jax.random.key(seed), q)
-    kwargs = dict(
+    if progress:
+        traces = [
+            sampler.sample(keys[i], jax.tree.map(lambda a: a[i], stats), progress=True, **_sampler_kwargs(settings))
+            for i in range(q)
+        ]
+        return jax.tree.map(lambda *a: jnp.stack(a), *traces)
+    return _sample_batch(keys, stats, settings, sampler.default_batch_method())
+
+
+def _sampler_kwargs(settings: SamplerSettings) -> dict:
+    return dict(
         num_draws=settings.num_draws,
         num_burnin=settings.num_burnin,
         num_chains=settings.num_chains,
         prior=settings.prior,
         max_active=settings.max_active,
+        p0=settings.p0,
+        v_s=settings.v_s,
     )
-    if progress:
-        traces = [
-            sampler.sample(
-                keys[i],
-                jax.tree.map(lambda a: a[i], stats),
-                p0=settings.p0,
-                v_s=settings.v_s,
-                progress=True,
-                **kwargs,
-            )
-            for i in range(q)
-        ]
-        return jax.tree.map(lambda *a: jnp.stack(a), *traces)
-    method = sampler.default_batch_method()
-    return sampler.batch_map(
-        lambda k, s: sampler.sample_jit(k, s, p0=settings.p0, v_s=settings.v_s, chain_method=method, **kwargs),
-        method, keys, stats,
-    )
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3))
+def _sample_batch(keys, stats, settings: SamplerSettings, method: str):
+    # One compiled program per settings and shapes: an eager lax.map over a fresh lambda
+    # would compile again on every update.
+    kwargs = _sampler_kwargs(settings)
+    return sampler.batch_map(lambda k, s: sampler.sample(k, s, chain_method=method, **kwargs), method, keys, stats)
 
 
 def update_input_output(
@@ -338,18 +341,21 @@ def update_output_only(
     trace = _sample_equations(drift_stats, settings, seed, progress)
     drift = _posteriors(trace, regressed, "drift", lib.names, pip_threshold)
     coef = np.stack([e.coefficients for e in drift])
-    twin = UpdatedTwin(nominal, lib, tuple(nominal.regressed_index), coef)
-    perturbation = lambda z: twin.perturbation(z, jnp.zeros(0, z.dtype))
-    Yg, Xg, window, tau = kramers_moyal.diffusion_targets(nominal, rec.x, dt, noise_var, perturbation)
-    Xg = np.asarray(Xg).reshape(-1, m)
-    Lg = np.asarray(dlib(Xg))
-    check_columns(Lg, dlib.names)
-    stats = equation_stats(Lg, np.asarray(Yg).reshape(-1, nominal.d))
-    # Overlapping windows: each target carries 1/tau of an independent sample's information.
-    scale = jnp.asarray(1.0 / tau)
-    stats = sampler.SuffStats(
-        stats.gram * scale[:, None, None], stats.xty * scale[:, None], stats.yty * scale, stats.n * scale
+    keep = np.any(coef != 0, axis=0)
+    step = statespace.DriftStep(
+        nominal, lib.subset(keep), jnp.asarray(coef[:, keep]), tuple(nominal.regressed_index), dt
     )
+    pilot, window = kramers_moyal.preaveraged_diffusion(nominal, rec.x, dt, noise_var, step.perturbation)
+    y = statespace.segments(rec.x)
+    unit_cov = kramers_moyal.process_covariances(nominal, dt)
+    gamma, info, lin = statespace.diffusion_mle(step, y, unit_cov, noise_var, pilot)
+    vel = tuple(int(v) for v in nominal.velocity_index)
+    Yg, Xg = statespace.diffusion_targets(lin, y, unit_cov, noise_var, gamma, vel)
+    Yg = np.asarray(Yg).reshape(-1, nominal.d)
+    Lg = np.asarray(dlib(np.asarray(Xg).reshape(-1, m)))
+    check_columns(Lg, dlib.names)
+    stats = _diffusion_stats(equation_stats(Lg, Yg), Yg, np.asarray(gamma), np.asarray(info))
+    gamma_var = np.diag(np.linalg.inv(np.asarray(info)))
     trace = _sample_equations(stats, settings, seed + 1, progress)
     velocities = [names[i] for i in nominal.velocity_index]
     diffusion = _posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
@@ -365,11 +371,37 @@ def update_output_only(
             "noise_std": np.sqrt(noise_var).tolist(),
             "drift_direction_half_width": hw,
             "diffusion_library": dlib.spec,
-            "diffusion_window": int(window),
-            "diffusion_autocorrelation_time": np.asarray(tau).tolist(),
+            "diffusion_estimator": "extended Kalman likelihood (iterated linearization)",
+            "diffusion_pilot": np.asarray(pilot).tolist(),
+            "diffusion_pilot_window": int(window),
+            "diffusion_ml": np.asarray(gamma).tolist(),
+            "diffusion_ml_std": np.sqrt(gamma_var).tolist(),
+            "diffusion_effective_samples": np.asarray(stats.n).tolist(),
             "records": int(R),
             "samples": int(R * N),
         },
+    )
+
+
+def _diffusion_stats(stats: sampler.SuffStats, Y, gamma, info) -> sampler.SuffStats:
+    """Statistics of the EM diffusion targets `Y (n, d)`, weighted to carry the likelihood's
+    information about `gamma (d,)` (`info (d, d)`).
+
+    A target is the conditional expectation of a squared one-step residual, `Gamma chi^2_1`,
+    whose scatter `2 Gamma^2` around it the expectation removes; that scatter is added back
+    to the residual sum of squares, so the sampler's noise level is a squared increment's.
+    The targets then count as `n_eff = 2 Gamma^2 / Var(Gamma)` independent squared
+    increments, so a constant diffusion's posterior variance is `1 / information`.
+    """
+    n = Y.shape[0]
+    missing = np.maximum(2.0 * gamma**2 - np.var(Y, axis=0), 0.0)
+    n_eff = 2.0 * gamma**2 / np.diag(np.linalg.inv(info))
+    scale = jnp.asarray(n_eff / n)
+    return sampler.SuffStats(
+        stats.gram * scale[:, None, None],
+        stats.xty * scale[:, None],
+        (stats.yty + n * missing) * scale,
+        stats.n * scale,
     )
 
 
