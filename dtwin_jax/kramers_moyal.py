@@ -50,6 +50,7 @@ __all__ = [
     "preaveraged_diffusion",
     "unit_gramian",
     "process_covariances",
+    "gramians",
 ]
 
 
@@ -275,10 +276,15 @@ def _window_sum(series, weights):
 def process_covariances(nominal: LinearSecondOrder, dt: float) -> jax.Array:
     """`(d, m, m)`: `int_0^dt exp(A s) e_v e_v^T exp(A^T s) ds` for each velocity `v`, the
     one-step state covariance per unit diffusion of `v` under the nominal dynamics."""
-    A = state_matrix(nominal)
+    return gramians(state_matrix(nominal), nominal.velocity_index, dt)
+
+
+def gramians(A, velocity_index, dt: float) -> jax.Array:
+    """`(d, m, m)`: the one-step covariance per unit diffusion of each velocity under the
+    linear dynamics `A (m, m)` (Van Loan's matrix exponential)."""
     m = A.shape[0]
     out = []
-    for v in nominal.velocity_index:
+    for v in velocity_index:
         source = jnp.zeros((m, m), A.dtype).at[v, v].set(1.0)
         block = jnp.zeros((2 * m, 2 * m), A.dtype)
         block = block.at[:m, :m].set(-A).at[:m, m:].set(source).at[m:, m:].set(A.T)

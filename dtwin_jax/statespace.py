@@ -6,10 +6,12 @@ With the drift known, the measured states are a nonlinear state-space model
 
 `F` one step of the updated drift (diffrax Tsit5), `Q_v` the one-step covariance per unit
 diffusion of velocity `v` (Van Loan, nominal dynamics), `eps_k ~ N(0, diag(s^2))`. An
-extended Kalman filter gives the likelihood of `Gamma`; Newton steps in `log Gamma` find its
-maximum. This uses every sample's information about the diffusion, where a quadratic variation
+extended Kalman filter gives the likelihood of `Gamma` and of the velocities' noise
+variances (fitted with it: a difference-based noise estimate is good to a few percent, and its
+error moves `Gamma` as much); Newton steps in their logs find the maximum. This uses every sample's information about the diffusion, where a quadratic variation
 of increments drowns: for example 2 at 5% noise the velocity noise per sample is ~400 times
-the Brownian increment, and pre-averaged increments were off by +350%, the likelihood by ~1%.
+the Brownian increment: pre-averaged increments put its sigma/m 53% low, the likelihood
+within 1.5%.
 
 The Gibbs sampler then sees the EM (Rauch-Tung-Striebel) targets of Eq. 23: the conditional
 expectation, given all measurements, of each squared one-step velocity residual per unit
@@ -28,7 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import cho_factor, cho_solve
 
-from dtwin_jax.library import Library
+from dtwin_jax.kramers_moyal import gramians
+from dtwin_jax.library import Library, parse_library
 from dtwin_jax.systems import LinearSecondOrder
 
 
@@ -62,6 +65,16 @@ class DriftStep(eqx.Module):
     dt: float = eqx.field(static=True)
     substeps: int = eqx.field(static=True, default=1)
 
+    @classmethod
+    def true(cls, example) -> "DriftStep":
+        """The true perturbation of a :class:`systems.Example`, for checks and studies."""
+        nominal = example.system.nominal
+        lib = parse_library(example.library_output_only, nominal.m, 0)
+        coef = example.true_coefficients(lib.names)
+        keep = np.any(coef != 0, axis=0)
+        regressed = tuple(int(i) for i in nominal.regressed_index)
+        return cls(nominal, lib.subset(keep), jnp.asarray(coef[:, keep]), regressed, example.dt)
+
     def perturbation(self, x):
         """Discovered extra rate `(m,)` at `x (m,)`."""
         h = self.coefficients @ self.library.eval_single(x)
@@ -83,17 +96,26 @@ class DriftStep(eqx.Module):
 
 
 class Linearization(NamedTuple):
-    """`F(X_k) ~ value_k + jac_k (X_k - point_k)` along a trajectory `point (N, m)`."""
+    """`F(X_k) ~ value_k + jac_k (X_k - point_k)` along a trajectory `point (N, m)`, and the
+    one-step noise covariance per unit diffusion of each velocity there."""
 
     point: jax.Array  # (N, m)
     value: jax.Array  # (N-1, m) F at point_k
     jac: jax.Array  # (N-1, m, m) dF/dX at point_k
+    unit_cov: jax.Array  # (N-1, d, m, m)
 
 
-def linearize(step, point) -> Linearization:
-    """Linearize `step` along `point (N, m)`: all samples at once, not in sequence."""
+def linearize(step: DriftStep, point) -> Linearization:
+    """Linearize `step` along `point (N, m)`: all samples at once, not in sequence.
+
+    The noise covariance uses the local Jacobian of the drift, not the nominal one: a
+    velocity's noise reaches other states through the perturbation (example 3's damage rate
+    `gamma x2^2`), and a model without that path reads their residuals as extra diffusion.
+    """
     x = jnp.asarray(point)[:-1]
-    return Linearization(point, jax.vmap(step)(x), jax.vmap(jax.jacfwd(step))(x))
+    vel = step.nominal.velocity_index
+    local = jax.vmap(lambda xk: gramians(jax.jacfwd(step.rate)(xk), vel, step.dt))(x)
+    return Linearization(point, jax.vmap(step)(x), jax.vmap(jax.jacfwd(step))(x), local)
 
 
 class Smoothed(NamedTuple):
@@ -105,8 +127,9 @@ class Smoothed(NamedTuple):
     loglik: jax.Array  # () log p(y_1..y_{N-1} | y_0)
 
 
-def _filter(lin: Linearization, y, Q, noise_var):
-    """Kalman filter of `y (N, m)` on the linearized transition; per-step outputs."""
+def _filter(lin: Linearization, y, gamma, noise_var):
+    """Kalman filter of `y (N, m)` on the linearized transition with diffusion `gamma (d,)`;
+    per-step outputs."""
     m = y.shape[-1]
     Rm = jnp.diag(noise_var)
     eye = jnp.eye(m, dtype=y.dtype)
@@ -122,24 +145,25 @@ def _filter(lin: Linearization, y, Q, noise_var):
 
     def forward(carry, inputs):
         mk, Pk = carry
-        yk, xk, fk, J = inputs
-        mp, Pp = fk + J @ (mk - xk), J @ Pk @ J.T + Q
+        yk, xk, fk, J, unit = inputs
+        mp, Pp = fk + J @ (mk - xk), J @ Pk @ J.T + jnp.einsum("v,vij->ij", gamma, unit)
         mn, Pn, ll = update(mp, Pp, yk)
         return (mn, Pn), (mn, Pn, mp, Pp, ll)
 
     # The first sample with a flat prior: the state is the measurement, covariance R.
     m0, P0 = y[0], Rm
-    inputs = (y[1:], lin.point[:-1], lin.value, lin.jac)
+    inputs = (y[1:], lin.point[:-1], lin.value, lin.jac, lin.unit_cov)
     _, (mf, Pf, mp, Pp, ll) = jax.lax.scan(forward, (m0, P0), inputs)
     mf = jnp.concatenate([m0[None], mf])
     Pf = jnp.concatenate([P0[None], Pf])
     return mf, Pf, mp, Pp, jnp.sum(ll)
 
 
-def smoother(lin: Linearization, y, Q, noise_var) -> Smoothed:
-    """Kalman filter and RTS smoother of `y (N, m)` under `X_{k+1} = F(X_k) + N(0, Q)`,
-    `F` linearized by `lin`, `y_k = X_k + N(0, diag(noise_var (m,)))`."""
-    mf, Pf, mp, Pp, ll = _filter(lin, y, Q, noise_var)
+def smoother(lin: Linearization, y, gamma, noise_var) -> Smoothed:
+    """Kalman filter and RTS smoother of `y (N, m)` under `X_{k+1} = F(X_k) + N(0, Q_k)`,
+    `F` linearized by `lin`, `Q_k = sum_v gamma_v lin.unit_cov[k, v]`,
+    `y_k = X_k + N(0, diag(noise_var (m,)))`."""
+    mf, Pf, mp, Pp, ll = _filter(lin, y, gamma, noise_var)
 
     def backward(carry, inputs):
         ms1, Ps1 = carry
@@ -180,85 +204,110 @@ def _linearize_records(step: DriftStep, x):
     return jax.vmap(lambda xx: linearize(step, xx))(x)
 
 
-_smoothed_means = jax.jit(jax.vmap(lambda l, yy, Q, r: smoother(l, yy, Q, r).mean, (0, 0, None, None)))
+_smoothed_means = jax.jit(jax.vmap(lambda l, yy, g, r: smoother(l, yy, g, r).mean, (0, 0, None, None)))
 
 
-def _relinearized(step: DriftStep, y, Q, r, passes: int):
+def _relinearized(step: DriftStep, y, gamma, r, passes: int):
     """Linearizations of every record `y (R, N, m)`: along the measurements, then `passes`
     times along the smoothed states (iterated extended Kalman smoother)."""
     lin = _linearize_records(step, y)
     for _ in range(passes):
-        lin = _linearize_records(step, _smoothed_means(lin, y, Q, r))
+        lin = _linearize_records(step, _smoothed_means(lin, y, gamma, r))
     return lin
 
 
-def _loglik(log_gamma, lin, y, r, unit_cov):
-    Q = jnp.einsum("v,vij->ij", jnp.exp(log_gamma), unit_cov)
-    return jnp.sum(jax.vmap(lambda l, yy: _filter(l, yy, Q, r)[-1])(lin, y))
+def _unpack(params, r, velocity_index):
+    """`params = [log Gamma (d), log s_v^2 (d)]` -> `(Gamma, noise variances (m,))`."""
+    d = len(velocity_index)
+    return jnp.exp(params[:d]), r.at[np.asarray(velocity_index)].set(jnp.exp(params[d:]))
 
 
-_value = jax.jit(_loglik)
-_derivatives = jax.jit(lambda *a: (jax.grad(_loglik)(*a), jax.hessian(_loglik)(*a)))
+def _loglik(params, lin, y, r, velocity_index):
+    gamma, noise = _unpack(params, r, velocity_index)
+    return jnp.sum(jax.vmap(lambda l, yy: _filter(l, yy, gamma, noise)[-1])(lin, y))
+
+
+_value = jax.jit(_loglik, static_argnums=4)
+_derivatives = jax.jit(
+    lambda *a: (jax.grad(_loglik)(*a), jax.hessian(_loglik)(*a)), static_argnums=4
+)
 
 
 def diffusion_mle(
-    step: DriftStep, y, unit_cov, noise_var, start, *, rounds: int = 2, max_iter: int = 10, tol: float = 1e-4
+    step: DriftStep,
+    y,
+    noise_var,
+    start,
+    *,
+    rounds: int = 2,
+    max_iter: int = 10,
+    tol: float = 1e-3,
 ):
-    """Maximum-likelihood diffusion `Gamma (d,)` of records `y (R, N, m)`.
+    """Maximum-likelihood diffusion `Gamma (d,)` and velocity noise of records `y (R, N, m)`.
 
-    `unit_cov (d, m, m)` from :func:`kramers_moyal.process_covariances`, `start (d,)` a
-    positive first guess. In each of `rounds`, the transition is linearized along the states
-    smoothed at the current `Gamma`, then Newton steps in `log Gamma` (at most a factor
-    e^1.5 each, halved while the likelihood falls) find the maximum. Returns `(Gamma (d,),
-    information (d, d), lin)`: the observed Fisher information in `Gamma` units and the last
-    linearization (batched over records).
+    `noise_var (m,)` the states' noise variances (the velocities' are a first guess and
+    fitted too: a difference-based estimate's error of 0.5% of `Gamma dt` moves `Gamma`
+    by 1%); `start (d,)` a positive first guess of `Gamma`. In each of `rounds`, the
+    transition is linearized along the states smoothed at the current values, then Newton
+    steps in the logs (at most a factor e^1.5 each, halved while the likelihood falls) find
+    the maximum. Returns `(Gamma (d,), Gamma_cov (d, d), noise_var (m,), lin)`: the inverse
+    observed information of `Gamma` with the noise profiled out, the fitted noise variances
+    and the last linearization (batched over records).
     """
     y = jnp.asarray(y)
+    vel = tuple(int(v) for v in step.nominal.velocity_index)
     r = _noise_floor(y, noise_var)
-    lg = jnp.log(jnp.maximum(jnp.asarray(start, y.dtype), 1e-300))
-    Q_of = lambda lg: jnp.einsum("v,vij->ij", jnp.exp(lg), unit_cov)
+    gamma0 = jnp.maximum(jnp.asarray(start, y.dtype), 1e-300)
+    # A noise-free record has its MLE at s_v^2 = 0; start no lower than 1e-4 of an increment.
+    s2 = jnp.maximum(r[np.asarray(vel)], 1e-4 * gamma0 * step.dt)
+    params = jnp.log(jnp.concatenate([gamma0, s2]))
     for round_ in range(rounds):
-        lin = _relinearized(step, y, Q_of(lg), r, 2 if round_ == 0 else 1)
-        args = (lin, y, r, unit_cov)
+        gamma, noise = _unpack(params, r, vel)
+        lin = _relinearized(step, y, gamma, noise, 2 if round_ == 0 else 1)
+        args = (lin, y, r, vel)
         for _ in range(max_iter):
-            f = _value(lg, *args)
-            g, H = _derivatives(lg, *args)
+            f = _value(params, *args)
+            g, H = _derivatives(params, *args)
             if bool(jnp.all(jnp.linalg.eigvalsh(H) < 0)):
                 delta = -jnp.linalg.solve(H, g)
             else:  # not concave here: a gradient step scaled by the curvature's size
                 delta = g / jnp.maximum(jnp.abs(jnp.diagonal(H)), 1.0)
             delta = jnp.clip(delta, -1.5, 1.5)
             for _ in range(6):
-                if bool(_value(lg + delta, *args) >= f):
+                if bool(_value(params + delta, *args) >= f):
                     break
                 delta = delta / 2
-            lg = lg + delta
-            if float(jnp.max(jnp.abs(delta))) < tol:
+            params = params + delta
+            # Converged when Gamma has settled; a vanishing noise may still creep to zero.
+            if float(jnp.max(jnp.abs(delta[: len(vel)]))) < tol:
                 break
-    g, H = _derivatives(lg, *args)
-    gamma = jnp.exp(lg)
-    # d2l/dG2 = (H_log - diag(g_log)) / (G G^T), with g_log ~ 0 at the maximum.
-    info = -(H - jnp.diag(g)) / (gamma[:, None] * gamma[None, :])
-    return gamma, info, lin
+    g, H = _derivatives(params, *args)
+    gamma, noise = _unpack(params, r, vel)
+    theta = jnp.exp(params)
+    # Information in natural units, d2l/dp2 = (H_log - diag(g_log)) / (p p^T).
+    info = -(H - jnp.diag(g)) / (theta[:, None] * theta[None, :])
+    d = len(vel)
+    I_gg, I_gs, I_ss = info[:d, :d], info[:d, d:], info[d:, d:]
+    if bool(jnp.all(jnp.linalg.eigvalsh(I_ss) > 0)):  # profile the noise out
+        I_gg = I_gg - I_gs @ jnp.linalg.solve(I_ss, I_gs.T)
+    return gamma, jnp.linalg.inv(I_gg), noise, lin
 
 
-@functools.partial(jax.jit, static_argnums=5)
-def diffusion_targets(lin: Linearization, y, unit_cov, noise_var, gamma, velocity_index):
+@functools.partial(jax.jit, static_argnums=4)
+def diffusion_targets(lin: Linearization, y, noise_var, gamma, velocity_index: tuple[int, ...]):
     """EM targets of the velocity diffusions at `gamma (d,)`, from records `y (R, N, m)`
     and their linearizations `lin` (batched over records, from :func:`diffusion_mle`);
-    `velocity_index` a tuple of the `d` velocities' positions in the state.
+    `velocity_index` the `d` velocities' positions in the state.
 
-    `Y_kv = E[(X_{k+1} - F(X_k))_v^2 | y] / Q_v[v, v]`, with `E[Gamma_v] = Y_kv` for a
+    `Y_kv = E[(X_{k+1} - F(X_k))_v^2 | y] / Q_kv[v, v]`, with `E[Gamma_v] = Y_kv` for a
     constant diffusion. Returns `(Y (R, N-1, d), X (R, N-1, m))`, `X` the smoothed states.
     """
     y = jnp.asarray(y)
     r = _noise_floor(y, noise_var)
-    Q = jnp.einsum("v,vij->ij", jnp.asarray(gamma), unit_cov)
     vel = np.asarray(velocity_index)
-    unit = unit_cov[np.arange(vel.size), vel, vel]
 
     def one(l, yy):
-        s = smoother(l, yy, Q, r)
+        s = smoother(l, yy, gamma, r)
         x0, P0, P1, J = s.mean[:-1], s.cov[:-1], s.cov[1:], l.jac
         res = s.mean[1:] - l.value - jnp.einsum("kij,kj->ki", J, x0 - l.point[:-1])
         JC = jnp.einsum("kij,klj->kil", J, s.cross)  # J cov(X_k, X_{k+1})
@@ -266,6 +315,7 @@ def diffusion_targets(lin: Linearization, y, unit_cov, noise_var, gamma, velocit
             jnp.einsum("ki,kj->kij", res, res) + P1 - JC - jnp.swapaxes(JC, 1, 2)
             + jnp.einsum("kij,kjl,kml->kim", J, P0, J)
         )
+        unit = l.unit_cov[:, np.arange(vel.size), vel, vel]  # (N-1, d)
         return second[:, vel, vel] / unit, x0
 
     return jax.vmap(one)(lin, y)

@@ -318,6 +318,17 @@ class Example(NamedTuple):
         gamma = np.sum(G * G, axis=1)
         return {nominal.state_names[i]: float(gamma[i]) for i in nominal.velocity_index}
 
+    def true_coefficients(self, names) -> np.ndarray:
+        """`(r, K)` coefficients of the true perturbation in a library with term `names`
+        (one row per regressed state)."""
+        nominal = self.system.nominal
+        names = list(names)
+        coef = np.zeros((len(nominal.regressed_index), len(names)))
+        for j, i in enumerate(nominal.regressed_index):
+            for term, c in self.true_terms.get(nominal.state_names[i], {}).items():
+                coef[j, names.index(term)] = c
+        return coef
+
     def identifiable(self) -> dict[str, dict[str, float]]:
         """`true_terms` restricted to the identifiable terms."""
         if self.identifiable_terms is None:

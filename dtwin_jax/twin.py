@@ -347,15 +347,14 @@ def update_output_only(
     )
     pilot, window = kramers_moyal.preaveraged_diffusion(nominal, rec.x, dt, noise_var, step.perturbation)
     y = statespace.segments(rec.x)
-    unit_cov = kramers_moyal.process_covariances(nominal, dt)
-    gamma, info, lin = statespace.diffusion_mle(step, y, unit_cov, noise_var, pilot)
+    gamma, gamma_cov, fitted_noise, lin = statespace.diffusion_mle(step, y, noise_var, pilot)
     vel = tuple(int(v) for v in nominal.velocity_index)
-    Yg, Xg = statespace.diffusion_targets(lin, y, unit_cov, noise_var, gamma, vel)
+    Yg, Xg = statespace.diffusion_targets(lin, y, fitted_noise, gamma, vel)
     Yg = np.asarray(Yg).reshape(-1, nominal.d)
     Lg = np.asarray(dlib(np.asarray(Xg).reshape(-1, m)))
     check_columns(Lg, dlib.names)
-    stats = _diffusion_stats(equation_stats(Lg, Yg), Yg, np.asarray(gamma), np.asarray(info))
-    gamma_var = np.diag(np.linalg.inv(np.asarray(info)))
+    gamma_var = np.diag(np.asarray(gamma_cov))
+    stats = _diffusion_stats(equation_stats(Lg, Yg), Yg, np.asarray(gamma), gamma_var)
     trace = _sample_equations(stats, settings, seed + 1, progress)
     velocities = [names[i] for i in nominal.velocity_index]
     diffusion = _posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
@@ -368,7 +367,7 @@ def update_output_only(
         settings=settings,
         seconds=time.perf_counter() - start,
         preprocessing={
-            "noise_std": np.sqrt(noise_var).tolist(),
+            "noise_std": np.sqrt(np.asarray(fitted_noise)).tolist(),
             "drift_direction_half_width": hw,
             "diffusion_library": dlib.spec,
             "diffusion_estimator": "extended Kalman likelihood (iterated linearization)",
@@ -383,9 +382,9 @@ def update_output_only(
     )
 
 
-def _diffusion_stats(stats: sampler.SuffStats, Y, gamma, info) -> sampler.SuffStats:
+def _diffusion_stats(stats: sampler.SuffStats, Y, gamma, gamma_var) -> sampler.SuffStats:
     """Statistics of the EM diffusion targets `Y (n, d)`, weighted to carry the likelihood's
-    information about `gamma (d,)` (`info (d, d)`).
+    information about `gamma (d,)`, whose variance is `gamma_var (d,)`.
 
     A target is the conditional expectation of a squared one-step residual, `Gamma chi^2_1`,
     whose scatter `2 Gamma^2` around it the expectation removes; that scatter is added back
@@ -395,7 +394,7 @@ def _diffusion_stats(stats: sampler.SuffStats, Y, gamma, info) -> sampler.SuffSt
     """
     n = Y.shape[0]
     missing = np.maximum(2.0 * gamma**2 - np.var(Y, axis=0), 0.0)
-    n_eff = 2.0 * gamma**2 / np.diag(np.linalg.inv(info))
+    n_eff = 2.0 * gamma**2 / gamma_var
     scale = jnp.asarray(n_eff / n)
     return sampler.SuffStats(
         stats.gram * scale[:, None, None],

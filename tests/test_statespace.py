@@ -5,25 +5,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import kramers_moyal, statespace, systems
-from dtwin_jax.library import parse_library
 from dtwin_jax.measurement import add_noise
-
-
-def _true_step(ex, dt=1e-3):
-    lib = parse_library("poly:3", ex.system.nominal.m, 0)
-    regressed = tuple(int(i) for i in ex.system.nominal.regressed_index)
-    names = [ex.system.nominal.state_names[i] for i in regressed]
-    coef = np.zeros((len(regressed), lib.K))
-    for j, state in enumerate(names):
-        for term, c in ex.true_terms.get(state, {}).items():
-            coef[j, lib.names.index(term)] = c
-    keep = np.any(coef != 0, axis=0)
-    return statespace.DriftStep(ex.system.nominal, lib.subset(keep), jnp.asarray(coef[:, keep]), regressed, dt)
 
 
 def test_drift_step_matches_the_true_rate_and_a_fine_diffrax_solve():
     ex = systems.example2()
-    step = _true_step(ex)
+    step = statespace.DriftStep.true(ex)
     x = jnp.array([0.3, 0.2, 1.0, -2.0])
     assert np.allclose(step.rate(x), ex.system.rate(x, jnp.zeros(2)), rtol=1e-12, atol=1e-9)
     t = jnp.array([0.0, 1e-3])
@@ -44,19 +31,18 @@ def test_likelihood_recovers_example2_diffusion_where_preaveraging_fails():
     nominal = ex.system.nominal
     sim = systems.simulate_example_sde(ex, jax.random.key(0), num_records=50)
     x = add_noise(jax.random.key(1), sim["x"], 0.05)
-    step = _true_step(ex)
+    step = statespace.DriftStep.true(ex)
     s2 = kramers_moyal.noise_variance(x)
     pilot, _ = kramers_moyal.preaveraged_diffusion(nominal, x, 1e-3, s2, step.perturbation)
-    unit_cov = kramers_moyal.process_covariances(nominal, 1e-3)
     y = statespace.segments(x)
-    gamma, info, lin = statespace.diffusion_mle(step, y, unit_cov, s2, pilot)
+    gamma, cov, noise, lin = statespace.diffusion_mle(step, y, s2, pilot)
     sigma_err = np.sqrt(np.asarray(gamma) / 0.25) - 1
-    sd = np.sqrt(np.diag(np.linalg.inv(np.asarray(info)))) / np.asarray(gamma) / 2
+    sd = np.sqrt(np.diag(np.asarray(cov))) / np.asarray(gamma) / 2
     # measured: pilot sigma -53%/+3%; likelihood within a few percent, sd ~2.7%
     assert np.max(np.abs(np.sqrt(np.asarray(pilot) / 0.25) - 1)) > 0.3
     assert np.all(np.abs(sigma_err) < 0.06), sigma_err
     assert np.all(np.abs(sigma_err) < 3 * sd), (sigma_err, sd)
     # EM fixed point: the targets' mean is the likelihood maximum.
-    Y, X = statespace.diffusion_targets(lin, y, unit_cov, s2, gamma, (2, 3))
+    Y, X = statespace.diffusion_targets(lin, y, noise, gamma, (2, 3))
     assert np.allclose(np.mean(np.asarray(Y), axis=(0, 1)), gamma, rtol=5e-3)
     assert X.shape == (y.shape[0], y.shape[1] - 1, 4)
