@@ -5,7 +5,8 @@ With the drift known, the measured states are a nonlinear state-space model
     X_{k+1} = F(X_k) + w_k,   w_k ~ N(0, sum_v Gamma_v Q_v),   y_k = X_k + eps_k,
 
 `F` one step of the updated drift (diffrax Tsit5), `Q_v` the one-step covariance per unit
-diffusion of velocity `v` (Van Loan, nominal dynamics), `eps_k ~ N(0, diag(s^2))`. An
+diffusion of velocity `v` (Van Loan, under the drift's local Jacobian), `eps_k ~ N(0,
+diag(s^2))`. An
 extended Kalman filter gives the likelihood of `Gamma` and of the velocities' noise
 variances (fitted with it: a difference-based noise estimate is good to a few percent, and its
 error moves `Gamma` as much); Newton steps in their logs find the maximum. This uses every sample's information about the diffusion, where a quadratic variation

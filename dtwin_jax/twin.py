@@ -5,9 +5,10 @@ Framework 1 (input-output, the paper's Section 4.1): measured states ``x``, inpu
 rates ``xdot`` (or rates estimated from ``x``); every regressed equation is sampled by the
 spike-and-slab Gibbs kernel, all equations in one vmapped call.
 
-Framework 2 (output-only, Section 4.2): measured states only; the drift perturbation and the
-diffusion of every velocity come from Kramers-Moyal targets (:mod:`dtwin_jax.kramers_moyal`),
-sampled by the same kernel.
+Framework 2 (output-only, Section 4.2): measured states only; the drift perturbation comes
+from Kramers-Moyal targets (:mod:`dtwin_jax.kramers_moyal`), then the diffusion of every
+velocity from the Kalman likelihood given that drift (:mod:`dtwin_jax.statespace`), whose EM
+targets are sampled by the same kernel.
 """
 
 from __future__ import annotations
