@@ -67,14 +67,20 @@ class DriftStep(eqx.Module):
     substeps: int = eqx.field(static=True, default=1)
 
     @classmethod
+    def from_coefficients(cls, nominal: LinearSecondOrder, library: Library, coefficients, dt: float):
+        """The drift of `coefficients (r, K)` of `library` for `nominal`'s regressed states,
+        keeping only the terms in use."""
+        coef = np.asarray(coefficients)
+        keep = np.any(coef != 0, axis=0)
+        regressed = tuple(int(i) for i in nominal.regressed_index)
+        return cls(nominal, library.subset(keep), jnp.asarray(coef[:, keep]), regressed, dt)
+
+    @classmethod
     def true(cls, example) -> "DriftStep":
         """The true perturbation of a :class:`systems.Example`, for checks and studies."""
         nominal = example.system.nominal
         lib = parse_library(example.library_output_only, nominal.m, 0)
-        coef = example.true_coefficients(lib.names)
-        keep = np.any(coef != 0, axis=0)
-        regressed = tuple(int(i) for i in nominal.regressed_index)
-        return cls(nominal, lib.subset(keep), jnp.asarray(coef[:, keep]), regressed, example.dt)
+        return cls.from_coefficients(nominal, lib, example.true_coefficients(lib.names), example.dt)
 
     def perturbation(self, x):
         """Discovered extra rate `(m,)` at `x (m,)`."""

@@ -341,11 +341,7 @@ def update_output_only(
     regressed = [names[i] for i in nominal.regressed_index]
     trace = _sample_equations(drift_stats, settings, seed, progress)
     drift = _posteriors(trace, regressed, "drift", lib.names, pip_threshold)
-    coef = np.stack([e.coefficients for e in drift])
-    keep = np.any(coef != 0, axis=0)
-    step = statespace.DriftStep(
-        nominal, lib.subset(keep), jnp.asarray(coef[:, keep]), tuple(nominal.regressed_index), dt
-    )
+    step = statespace.DriftStep.from_coefficients(nominal, lib, np.stack([e.coefficients for e in drift]), dt)
     pilot, window = kramers_moyal.preaveraged_diffusion(nominal, rec.x, dt, noise_var, step.perturbation)
     y = statespace.segments(rec.x)
     gamma, gamma_cov, fitted_noise, lin = statespace.diffusion_mle(step, y, noise_var, pilot)
