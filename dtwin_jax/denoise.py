@@ -160,27 +160,26 @@ def kinematic_smoother(
     return out
 
 
-def input_noise_variance(nominal: LinearSecondOrder, xs, u, rates, half_width: int) -> np.ndarray:
+def input_noise_variance(nominal: LinearSecondOrder, xs, u, rates, half_width: int) -> jax.Array:
     """Variance ``(n,)`` of white noise on the measured inputs, from the measured rates.
 
     A white input cannot be told from white noise on its own, but the accelerations see only
     the true input: the high-frequency parts of ``r = xdot - f(x, 0)`` and ``u`` covary through
     ``M^-1 B`` times the true input's variance, while ``u`` alone carries true + noise.
-    ``xs``, ``u``, ``rates`` are ``(R, N, .)``.
+    ``xs``, ``u``, ``rates`` are ``(R, N, .)``; ``half_width`` is static. Jittable.
     """
+    xs, u, rates = (jnp.asarray(a) for a in (xs, u, rates))
     d = nominal.d
-    vel = np.asarray(nominal.velocity_index)
-    gain = np.linalg.solve(np.asarray(nominal.M), np.asarray(nominal.B))  # (d, n)
-    zero = jnp.zeros(u.shape[-1])
-    r = np.stack([
-        np.asarray(rd)[:, vel] - np.asarray(nominal.rate_batch(jnp.asarray(x), jnp.broadcast_to(zero, uu.shape)))[:, vel]
-        for x, uu, rd in zip(xs, u, rates)
-    ])
+    vel = jnp.asarray(nominal.velocity_index)
+    gain = jnp.linalg.solve(nominal.M, nominal.B)  # (d, n)
+    zero = jnp.zeros(u.shape[-1], u.dtype)
+    f0 = jax.vmap(lambda x: nominal.rate_batch(x, jnp.broadcast_to(zero, (x.shape[0], zero.size))))(xs)
+    r = rates[..., vel] - f0[..., vel]
     core = slice(half_width, -half_width)
-    hp_r = (r - np.asarray(smooth(r, half_width, _ORDER)))[:, core].reshape(-1, d)
-    hp_u = (u - np.asarray(smooth(u, half_width, _ORDER)))[:, core].reshape(-1, u.shape[-1])
+    hp_r = (r - smooth(r, half_width, _ORDER))[:, core].reshape(-1, d)
+    hp_u = (u - smooth(u, half_width, _ORDER))[:, core].reshape(-1, u.shape[-1])
     cov_ru = hp_r.T @ hp_u / hp_r.shape[0]  # (d, n) = gain @ cov(u_true)
-    var_true = np.diag(np.linalg.lstsq(gain, cov_ru, rcond=None)[0])
-    var_meas = np.mean(hp_u**2, axis=0)
+    var_true = jnp.diag(jnp.linalg.pinv(gain) @ cov_ru)  # least squares, as lstsq
+    var_meas = jnp.mean(hp_u**2, axis=0)
     h0 = float(savgol_coefficients(half_width, _ORDER)[half_width])
-    return np.maximum(var_meas - var_true, 0.0) / (1.0 - h0)
+    return jnp.maximum(var_meas - var_true, 0.0) / (1.0 - h0)

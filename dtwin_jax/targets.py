@@ -7,15 +7,23 @@ states; the kinematic rows are exact), and each ``y_i`` is regressed on one libr
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from dtwin_jax import sampler
+from dtwin_jax.denoise import input_noise_variance, kinematic_smoother
 from dtwin_jax.library import Library
 from dtwin_jax.systems import LinearSecondOrder
 
-__all__ = ["input_output_targets", "equation_stats", "correct_input_noise"]
+__all__ = [
+    "input_output_targets",
+    "equation_stats",
+    "correct_input_noise",
+    "smoothed_input_output_stats",
+    "input_output_stats",
+]
 
 
 def input_output_targets(nominal: LinearSecondOrder, x, u, xdot) -> jax.Array:
@@ -47,18 +55,62 @@ def correct_input_noise(stats: sampler.SuffStats, lib: Library, nominal: LinearS
     The noise ``n`` on ``u_j`` sits in the library column ``u_j`` (adding ``N var_j`` to its
     squared norm) and, through the removed nominal ``M^-1 B u``, in every velocity target with
     the opposite sign (adding ``-N (M^-1 B)_ij var_j`` to ``L^T y``). Unremoved, it shows up as
-    a spurious ``u_j`` term at high noise.
+    a spurious ``u_j`` term at high noise. ``noise_var (n,)`` may be traced.
     """
-    gain = np.linalg.solve(np.asarray(nominal.M), np.asarray(nominal.B))  # (d, n)
-    gram, xty = np.array(stats.gram), np.array(stats.xty)
-    n_rows = float(np.asarray(stats.n)[0])
-    regressed = nominal.regressed_index
-    for j, name in enumerate(nominal.input_names):
+    gain = jnp.linalg.solve(nominal.M, nominal.B)  # (d, n)
+    noise_var = jnp.asarray(noise_var)
+    gram, xty = jnp.asarray(stats.gram), jnp.asarray(stats.xty)
+    n_rows = jnp.asarray(stats.n)[..., 0]
+    for j, name in enumerate(nominal.input_names):  # static: names and indices
         if name not in lib.names:
             continue
         k = lib.names.index(name)
-        gram[:, k, k] -= n_rows * noise_var[j]
-        for e, i in enumerate(regressed):
+        gram = gram.at[..., k, k].add(-n_rows[..., None] * noise_var[..., j, None])
+        for e, i in enumerate(nominal.regressed_index):
             if i in nominal.velocity_index:
-                xty[e, k] += n_rows * gain[i - nominal.d, j] * noise_var[j]
-    return stats._replace(gram=jnp.asarray(gram), xty=jnp.asarray(xty))
+                shift = n_rows * gain[i - nominal.d, j] * noise_var[..., j]
+                xty = xty.at[..., e, k].add(shift)
+    return stats._replace(gram=gram, xty=xty)
+
+
+@functools.partial(jax.jit, static_argnames=("half_width", "correct_inputs"))
+def smoothed_input_output_stats(
+    nominal: LinearSecondOrder, lib: Library, xs, u, xdot, half_width: int, *, correct_inputs: bool = True
+) -> tuple[sampler.SuffStats, jax.Array | None]:
+    """Statistics of every regressed equation from denoised states, pooled over records.
+
+    ``xs (R, N, m)`` denoised states, ``u (R, N, n)`` measured inputs, ``xdot (R, N, m)``
+    measured (or estimated) rates; ``half_width`` (static) of the noise filters. With
+    ``correct_inputs`` (and an ``input`` family in ``lib``) the input noise is estimated
+    (:func:`denoise.input_noise_variance`) and removed. Returns ``(SuffStats batched over
+    equations, input noise variance (n,) or None)``. Jitted (``half_width`` and
+    ``correct_inputs`` static; ``lib`` holds no arrays).
+    """
+    xs, u, xdot = (jnp.asarray(a) for a in (xs, u, xdot))
+    m, n = xs.shape[-1], u.shape[-1]
+    xs_flat, u_flat = xs.reshape(-1, m), u.reshape(-1, n)
+    Y = input_output_targets(nominal, xs_flat, u_flat, xdot.reshape(-1, m))
+    stats = equation_stats(lib(xs_flat, u_flat), Y)
+    if not (correct_inputs and lib.uses_inputs):
+        return stats, None
+    noise_var = input_noise_variance(nominal, xs, u, xdot, half_width)
+    return correct_input_noise(stats, lib, nominal, noise_var), noise_var
+
+
+@functools.partial(jax.jit, static_argnames=("dt", "half_width"))
+def input_output_stats(
+    nominal: LinearSecondOrder, lib: Library, dt: float, x, u, xdot, half_width: int
+) -> sampler.SuffStats:
+    """The whole framework-1 chain for measured records: kinematic RTS smoothing of the
+    states, targets (Eq. 14), library, statistics and the input-noise correction.
+
+    ``x (N, m)`` or ``(R, N, m)`` measured states, ``u`` inputs ``(.., N, n)``, ``xdot``
+    measured rates like ``x``; ``dt`` s and ``half_width`` (static, see
+    :func:`denoise.auto_half_width`). Records are smoothed one by one and pooled. Returns
+    ``SuffStats`` batched over the regressed equations. Jitted, vmappable over data.
+    """
+    x, u, xdot = (jnp.asarray(a) for a in (x, u, xdot))
+    if x.ndim == 2:
+        x, u, xdot = x[None], u[None], xdot[None]
+    xs = jax.vmap(lambda a, b, c: kinematic_smoother(nominal, dt, a, b, c, half_width))(x, xdot, u)
+    return smoothed_input_output_stats(nominal, lib, xs, u, xdot, half_width)[0]
