@@ -38,7 +38,7 @@ from dtwin_jax import kramers_moyal, measurement, sampler, statespace, systems, 
 from dtwin_jax.denoise import auto_half_width
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library, parse_library
-from dtwin_jax.twin import DIFFUSION_LIBRARY, SamplerSettings, _diffusion_stats, _nearest_pd
+from dtwin_jax.twin import DIFFUSION_LIBRARY, SamplerSettings, _diffusion_stats, output_only_drift_stats
 
 __all__ = [
     "DEFAULT_LEVELS",
@@ -185,8 +185,7 @@ def _ensembles(example, sim_keys, records: int):
 def _drift_stats(example, lib, level, x, key, half_width: int):
     nominal = example.system.nominal
     y = measurement.add_noise(key, x, level)
-    st = kramers_moyal.drift_statistics(nominal, lib, y, example.dt, kramers_moyal.noise_variance(y), half_width)
-    return st._replace(gram=_nearest_pd(st.gram))
+    return output_only_drift_stats(nominal, lib, y, example.dt, kramers_moyal.noise_variance(y), jax.random.fold_in(key, 1))
 
 
 @eqx.filter_jit
