@@ -1,0 +1,142 @@
+"""The updates on the zoo of random perturbed systems (`dtwin_jax.zoo`), scored by family.
+
+    python benchmarks/zoo.py --framework input-output|output-only --members 40 --seed 0
+        [--records 200] [--chains 4 --draws 2000 --burn-in 1000] [--json out.json]
+
+Member `i` is `zoo.draw_member(seed + i)` (the families cycle), measured at its own noise
+level (2-5% on every signal). Input-output: `simulate_example`, then `measure` on states,
+accelerations and inputs, then `update_input_output` with the measured accelerations.
+Output-only: `simulate_example_sde` with `--records` records, `add_noise` on the states,
+then `update_output_only`. Scores: exact support (every regressed equation's selected terms
+are exactly its true terms), 95% HDI coverage of every true coefficient, and its relative
+error `|mean / truth - 1|` (mean given inclusion; a never-included term counts 100%).
+Prints one progress line per member and a markdown table by family; `--json` writes every
+member's row.
+"""
+
+import argparse
+import json
+import time
+
+import jax
+import numpy as np
+
+import dtwin_jax  # noqa: F401  (float64)
+from dtwin_jax import SamplerSettings, systems, update_input_output, update_output_only, zoo
+from dtwin_jax.measurement import add_noise, measure
+
+
+def _update(member: zoo.Member, framework: str, records: int, settings: SamplerSettings):
+    """Simulate and measure one member, update its twin; returns the drift equations."""
+    ex, level = member.example, member.noise_level
+    sim_key = jax.random.fold_in(jax.random.key(member.seed), 1)  # not the pilot's key
+    noise_key = jax.random.fold_in(jax.random.key(member.seed), 2)
+    nominal = ex.system.nominal
+    if framework == "input-output":
+        sim = systems.simulate_example(ex, sim_key)
+        meas = measure(noise_key, sim["t"], sim["x"], sim["xdot"], sim["u"], level=level)
+        result = update_input_output(nominal, meas.t, meas.x, meas.u, meas.xdot,
+                                     library=ex.library, settings=settings, seed=member.seed)
+    else:
+        sim = systems.simulate_example_sde(ex, sim_key, num_records=records)
+        x = add_noise(noise_key, sim["x"], level)
+        result = update_output_only(nominal, sim["t"], x, library=ex.library_output_only,
+                                    settings=settings, seed=member.seed)
+    return [eq for eq in result.equations if eq.kind == "drift"]
+
+
+def score(member: zoo.Member, equations) -> dict:
+    """Support, HDI coverage and relative error of every true coefficient of one member."""
+    terms, support = [], {}
+    for eq in equations:
+        truth = member.example.true_terms.get(eq.state, {})
+        selected = sorted(eq.names[k] for k in np.flatnonzero(eq.selected))
+        support[eq.state] = {"selected": selected, "true": sorted(truth),
+                             "exact": set(selected) == set(truth)}
+        for term, coef in truth.items():
+            k = eq.names.index(term)
+            lo, hi = eq.hdi_95[k]
+            terms.append({
+                "state": eq.state, "term": term, "truth": coef, "mean": float(eq.mean[k]),
+                "std": float(eq.std[k]), "pip": float(eq.pip[k]), "hdi_95": [float(lo), float(hi)],
+                "covered": bool(lo <= coef <= hi),  # NaN HDI (never included): False
+                "error": float(abs(eq.mean[k] / coef - 1)),
+            })
+    return {"support_exact": all(s["exact"] for s in support.values()),
+            "support": support, "terms": terms}
+
+
+def _stats(rows) -> tuple:
+    errors = np.array([t["error"] for r in rows for t in r["terms"]])
+    covered = [t["covered"] for r in rows for t in r["terms"]]
+    return (
+        len(rows),
+        100 * np.mean([r["support_exact"] for r in rows]),
+        100 * np.mean(covered) if covered else float("nan"),
+        100 * np.median(errors) if errors.size else float("nan"),
+        100 * np.percentile(errors, 90) if errors.size else float("nan"),
+    )
+
+
+def table(rows) -> str:
+    """Markdown table by family, then the overall row."""
+    lines = ["| family | members | exact support % | HDI coverage % | median error % | p90 error % |",
+             "|---|---|---|---|---|---|"]
+    groups = [(f, [r for r in rows if r["family"] == f]) for f in zoo.FAMILIES]
+    for name, group in [*groups, ("**all**", rows)]:
+        if group:
+            n, exact, cover, med, p90 = _stats(group)
+            lines.append(f"| {name} | {n} | {exact:.0f} | {cover:.0f} | {med:.2f} | {p90:.2f} |")
+    return "\n".join(lines)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--framework", choices=["input-output", "output-only"], default="input-output")
+    p.add_argument("--members", type=int, default=40)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--records", type=int, default=200, help="output-only: records per member")
+    p.add_argument("--chains", type=int, default=4)
+    p.add_argument("--draws", type=int, default=2000)
+    p.add_argument("--burn-in", type=int, default=1000)
+    p.add_argument("--json", default=None)
+    a = p.parse_args()
+    settings = SamplerSettings(num_chains=a.chains, num_draws=a.draws, num_burnin=a.burn_in)
+    print(f"{a.framework}, {a.members} members from seed {a.seed}; {a.chains} chains x "
+          f"{a.draws} draws, {a.burn_in} burn-in" + (f"; {a.records} records" if a.framework == "output-only" else ""),
+          flush=True)
+    rows = []
+    for i in range(a.members):
+        start = time.perf_counter()
+        member = zoo.draw_member(a.seed + i)
+        try:
+            row = score(member, _update(member, a.framework, a.records, settings))
+            failure = None
+        except Exception as e:  # a failed update is a result too: scored as wrong
+            row = {"support_exact": False, "support": {}, "terms": [
+                {"state": s, "term": t, "truth": c, "covered": False, "error": 1.0}
+                for s, terms in member.example.true_terms.items() for t, c in terms.items()]}
+            failure = f"{type(e).__name__}: {e}"
+        seconds = time.perf_counter() - start
+        row = {"name": member.example.name, "family": member.family, "seed": member.seed,
+               "noise_level": member.noise_level, "ratio": member.ratio, "z_min": member.z_min,
+               "z_full": member.z_full, "description": member.example.description,
+               "seconds": seconds, "failure": failure} | row
+        rows.append(row)
+        errors = ", ".join(f"{t['term']} {100 * t['error']:.2f}%{'' if t['covered'] else ' (HDI miss)'}"
+                           for t in row["terms"])
+        extra = {s: v["selected"] for s, v in row["support"].items() if not v["exact"]}
+        print(f"{member.example.name}: support {'ok' if row['support_exact'] else 'WRONG ' + str(extra)}; "
+              f"{errors}; {seconds:.1f} s" + (f"; FAILED {failure}" if failure else ""), flush=True)
+    print()
+    print(table(rows), flush=True)
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump({"framework": a.framework, "members": a.members, "seed": a.seed,
+                       "records": a.records if a.framework == "output-only" else None,
+                       "settings": {"chains": a.chains, "draws": a.draws, "burn_in": a.burn_in},
+                       "rows": rows}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
