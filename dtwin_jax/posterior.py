@@ -41,6 +41,34 @@ class EquationPosterior:
         """Terms with PIP above the threshold, ``(K,)`` bool."""
         return self.pip > self.pip_threshold
 
+    @property
+    def pip_per_chain(self) -> np.ndarray:
+        """Inclusion probability of every term within each chain, ``(chains, K)``."""
+        return self.gamma.mean(axis=1)
+
+    @property
+    def pip_chain_spread(self) -> np.ndarray:
+        """``max_c pip_ck - min_c pip_ck`` of every term, ``(K,)``: chains that start apart and
+        stay in different modes disagree here (0 with one chain)."""
+        return np.ptp(self.pip_per_chain, axis=0)
+
+    @property
+    def pip_chain_spread_max(self) -> float:
+        """The largest disagreement between chains on any term's PIP."""
+        return float(self.pip_chain_spread.max()) if len(self.names) else 0.0
+
+    def rhat_gamma(self) -> np.ndarray:
+        """Rank-normalised split R-hat of the indicators of every term some chain selects
+        (per-chain PIP above the threshold), ``(n,)``; NaN where the indicator never changes.
+        The order is that of :meth:`chain_selected`. Chains each constant at different values
+        (one always includes the term, another never) give ``inf``."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.array([_diag(az.rhat, self.gamma[..., k].astype(float)) for k in self.chain_selected()])
+
+    def chain_selected(self) -> np.ndarray:
+        """Indices of the terms selected by at least one chain."""
+        return np.flatnonzero((self.pip_per_chain > self.pip_threshold).any(axis=0))
+
     def _conditional(self, k: int) -> np.ndarray:
         draws = self.theta[..., k].ravel()
         return draws[self.gamma[..., k].ravel()]
