@@ -122,6 +122,7 @@ def _discover(args) -> int:
             settings=_settings(args), seed=args.seed, progress=not args.quiet,
         )
     print(result.summary())
+    _print_warnings(result)
     if args.out:
         write_json(args.out, result.to_json())
     if args.plot:
@@ -192,6 +193,12 @@ def _demo_output_only(args, ex, say) -> int:
     return 0
 
 
+def _print_warnings(result) -> None:
+    """Residual checks, chain disagreement and R-hat, one line each on standard error."""
+    for w in result.warnings():
+        print(f"dtwin-jax: warning: {w}", file=sys.stderr)
+
+
 def _finish_demo(ex, result, out: Path, say, arrays: dict, header: list[str],
                  diffusion: dict | None = None) -> None:
     """Print the header, the discovered equations, the truth and diagnostics; write
@@ -211,6 +218,7 @@ def _finish_demo(ex, result, out: Path, say, arrays: dict, header: list[str],
         print(f"{state} [diffusion]: {gamma:g}")
     diag = result.diagnostics()
     print(f"R-hat max {diag['rhat_max']}, bulk ESS min {diag['ess_bulk_min']}, {diag['seconds']} s")
+    _print_warnings(result)
     write_json(out / "result.json", result.to_json())
     plot_pip(result, out / "pip.png")
     with atomic_path(out / "measurements.npz") as tmp:

@@ -45,6 +45,7 @@ __all__ = [
     "segments",
     "diffusion_mle",
     "diffusion_targets",
+    "standardized_innovations",
 ]
 
 
@@ -324,5 +325,27 @@ def diffusion_targets(lin: Linearization, y, noise_var, gamma, velocity_index: t
         )
         unit = l.unit_cov[:, np.arange(vel.size), vel, vel]  # (N-1, d)
         return second[:, vel, vel] / unit, x0
+
+    return jax.vmap(one)(lin, y)
+
+
+@functools.partial(jax.jit, static_argnums=4)
+def standardized_innovations(lin: Linearization, y, noise_var, gamma, velocity_index: tuple[int, ...]):
+    """One-step prediction errors of the velocities under the fitted drift and diffusion,
+    each divided by its predicted std, and the predicted states they follow.
+
+    `y (R, N, m)` records, `lin` their linearizations (from :func:`diffusion_mle`). Returns
+    `(innovations (R, N-1, d), predicted (R, N-1, m))`: white standard normal, and
+    independent of anything predicted from the past, when the model explains the data; a
+    missing or wrong drift term leaves structure in them against the predicted states.
+    """
+    y = jnp.asarray(y)
+    r = _noise_floor(y, noise_var)
+    vel = np.asarray(velocity_index)
+
+    def one(l, yy):
+        _, _, mp, Pp, _ = _filter(l, yy, gamma, r)
+        scale = jnp.sqrt(Pp[:, vel, vel] + r[vel])
+        return (yy[1:, vel] - mp[:, vel]) / scale, mp
 
     return jax.vmap(one)(lin, y)

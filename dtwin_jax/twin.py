@@ -29,7 +29,8 @@ from dtwin_jax.denoise import auto_half_width, kinematic_smoother, savgol_states
 from dtwin_jax.measurement import smooth
 from dtwin_jax.posterior import EquationPosterior
 from dtwin_jax.systems import LinearSecondOrder
-from dtwin_jax.targets import equation_stats, smoothed_input_output_stats
+from dtwin_jax.checks import residual_checks
+from dtwin_jax.targets import equation_stats, input_output_targets, smoothed_input_output_stats
 
 __all__ = [
     "SamplerSettings",
@@ -96,6 +97,8 @@ class UpdateResult:
     settings: SamplerSettings
     seconds: float
     preprocessing: dict = field(default_factory=dict)
+    # Residual checks (dtwin_jax.checks.residual_checks) keyed by equation label.
+    checks: dict = field(default_factory=dict)
 
     @property
     def state_names(self) -> tuple[str, ...]:
@@ -115,15 +118,44 @@ class UpdateResult:
     def diagnostics(self) -> dict:
         rhat = np.concatenate([e.rhat() for e in self.equations] + [np.zeros(0)])
         ess = np.concatenate([e.ess_bulk() for e in self.equations] + [np.zeros(0)])
+        rhat_g = np.concatenate([e.rhat_gamma() for e in self.equations] + [np.zeros(0)])
         rhat, ess = rhat[np.isfinite(rhat)], ess[np.isfinite(ess)]
+        # inf (chains never overlap) must not vanish; clipped so that the JSON stays valid.
+        rhat_g = np.minimum(rhat_g[~np.isnan(rhat_g)], 1e6)
+        spread = {self._label(e): e.pip_chain_spread_max for e in self.equations}
         return {
             "chains": self.settings.num_chains,
             "draws": self.settings.num_draws,
             "burn_in": self.settings.num_burnin,
             "rhat_max": float(rhat.max()) if rhat.size else None,
+            "rhat_gamma_max": float(rhat_g.max()) if rhat_g.size else None,
             "ess_bulk_min": float(ess.min()) if ess.size else None,
+            "pip_chain_spread_max": max(spread.values(), default=0.0),
+            "pip_chain_spread": spread,
             "seconds": round(self.seconds, 3),
         }
+
+    @staticmethod
+    def _label(e: EquationPosterior) -> str:
+        return e.state if e.kind == "drift" else f"{e.state} [diffusion]"
+
+    def warnings(self) -> list[str]:
+        """One line per sign of an unreliable result: failed residual checks, chains that
+        disagree on a PIP by more than 0.2, R-hat above 1.01."""
+        out = [f"{label}: {w}" for label, c in self.checks.items() for w in c.get("warnings", [])]
+        for e in self.equations:
+            pips = e.pip_per_chain
+            for k in np.flatnonzero(e.pip_chain_spread > 0.2):
+                out.append(
+                    f"chains disagree on PIP of {e.names[k]} in {self._label(e)} "
+                    f"({pips[:, k].min():.2f}..{pips[:, k].max():.2f}): multimodal posterior, run longer"
+                )
+        diag = self.diagnostics()
+        for key in ("rhat_max", "rhat_gamma_max"):
+            if diag[key] is not None and diag[key] > 1.01:
+                what = "coefficients" if key == "rhat_max" else "inclusion indicators"
+                out.append(f"R-hat of the {what} {diag[key]:.3g} > 1.01: chains have not converged, run longer")
+        return out
 
     def to_json(self) -> dict:
         """The result file of formats.md."""
@@ -136,6 +168,7 @@ class UpdateResult:
             "equations": [e.to_json() for e in self.equations],
             "diagnostics": self.diagnostics(),
             "preprocessing": self.preprocessing,
+            "checks": self.checks,
         }
 
     def summary(self) -> str:
@@ -267,6 +300,11 @@ def update_input_output(
         )
         for j, i in enumerate(nominal.regressed_index)
     ]
+    residual = _input_output_residuals(nominal, lib, xs, rec.u, rates, equations)
+    checks = {
+        e.state: residual_checks(residual[j], xs, nominal.velocity_index, names)
+        for j, e in enumerate(equations)
+    }
     return UpdateResult(
         mode="input-output",
         nominal=nominal,
@@ -281,7 +319,17 @@ def update_input_output(
             "input_noise_std": None if noise_var is None else np.sqrt(noise_var).tolist(),
             "samples": int(R * N),
         },
+        checks=checks,
     )
+
+
+def _input_output_residuals(nominal, lib, xs, u, rates, equations) -> np.ndarray:
+    """Residuals ``(q, R, N)`` of every regressed equation under its selected terms."""
+    R, N, m = xs.shape
+    x, uu = jnp.asarray(xs).reshape(R * N, m), jnp.asarray(u).reshape(R * N, -1)
+    Y = input_output_targets(nominal, x, uu, jnp.asarray(rates).reshape(R * N, m))
+    coef = jnp.asarray(np.stack([e.coefficients for e in equations]))
+    return np.asarray((Y - lib(x, uu) @ coef.T).T).reshape(-1, R, N)
 
 
 def _output_only_library(library, nominal: LinearSecondOrder, default: str) -> Library:
@@ -347,6 +395,14 @@ def update_output_only(
     trace = _sample_equations(stats, settings, seed + 1, progress)
     velocities = [names[i] for i in nominal.velocity_index]
     diffusion = _posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
+    # The drift's posterior-predictive check: one-step innovations of the velocities under
+    # the fitted drift and diffusion, white and unpredictable from the past when it fits.
+    innov, predicted = statespace.standardized_innovations(lin, y, fitted_noise, gamma, vel)
+    predicted = np.asarray(predicted)
+    checks = {
+        names[v]: residual_checks(np.asarray(innov[..., j]), predicted, vel, names)
+        for j, v in enumerate(vel)
+    }
     return UpdateResult(
         mode="output-only",
         nominal=nominal,
@@ -368,6 +424,7 @@ def update_output_only(
             "records": int(R),
             "samples": int(R * N),
         },
+        checks=checks,
     )
 
 
