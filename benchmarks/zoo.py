@@ -42,13 +42,20 @@ def _update(member: zoo.Member, framework: str, records: int, settings: SamplerS
         x = add_noise(noise_key, sim["x"], level)
         result = update_output_only(nominal, sim["t"], x, library=ex.library_output_only,
                                     settings=settings, seed=member.seed)
-    return [eq for eq in result.equations if eq.kind == "drift"]
+    return result.equations
 
 
 def score(member: zoo.Member, equations) -> dict:
     """Support, HDI coverage and relative error of every true coefficient of one member."""
-    terms, support = [], {}
+    terms, support, diffusion = [], {}, []
     for eq in equations:
+        if eq.kind == "diffusion":  # constant diffusion: exactly the term `1`, and its error
+            k = eq.names.index("1")
+            truth = member.example.true_diffusion()[eq.state]
+            selected = sorted(eq.names[j] for j in np.flatnonzero(eq.selected))
+            diffusion.append({"state": eq.state, "selected": selected, "exact": selected == ["1"],
+                              "error": float(abs(eq.mean[k] / truth - 1))})
+            continue
         truth = member.example.true_terms.get(eq.state, {})
         selected = sorted(eq.names[k] for k in np.flatnonzero(eq.selected))
         support[eq.state] = {"selected": selected, "true": sorted(truth),
@@ -63,7 +70,7 @@ def score(member: zoo.Member, equations) -> dict:
                 "error": float(abs(eq.mean[k] / coef - 1)),
             })
     return {"support_exact": all(s["exact"] for s in support.values()),
-            "support": support, "terms": terms}
+            "support": support, "terms": terms, "diffusion": diffusion}
 
 
 def _stats(rows) -> tuple:
@@ -78,15 +85,26 @@ def _stats(rows) -> tuple:
     )
 
 
+def _diffusion_stats(rows) -> str:
+    """` | constant diffusion exact % | median Gamma error %` (output-only), else empty."""
+    found = [d for r in rows for d in r.get("diffusion", [])]
+    if not found:
+        return ""
+    exact = 100 * np.mean([d["exact"] for d in found])
+    return f" {exact:.0f} | {100 * np.median([d['error'] for d in found]):.2f} |"
+
+
 def table(rows) -> str:
     """Markdown table by family, then the overall row."""
-    lines = ["| family | members | exact support % | HDI coverage % | median error % | p90 error % |",
-             "|---|---|---|---|---|---|"]
+    extra = any(r.get("diffusion") for r in rows)
+    head = "| family | members | exact support % | HDI coverage % | median error % | p90 error % |"
+    lines = [head + (" diffusion `1` only % | median Gamma error % |" if extra else ""),
+             "|---|---|---|---|---|---|" + ("---|---|" if extra else "")]
     groups = [(f, [r for r in rows if r["family"] == f]) for f in zoo.FAMILIES]
     for name, group in [*groups, ("**all**", rows)]:
         if group:
             n, exact, cover, med, p90 = _stats(group)
-            lines.append(f"| {name} | {n} | {exact:.0f} | {cover:.0f} | {med:.2f} | {p90:.2f} |")
+            lines.append(f"| {name} | {n} | {exact:.0f} | {cover:.0f} | {med:.2f} | {p90:.2f} |" + _diffusion_stats(group))
     return "\n".join(lines)
 
 
@@ -127,7 +145,9 @@ def main():
                            for t in row["terms"])
         extra = {s: v["selected"] for s, v in row["support"].items() if not v["exact"]}
         print(f"{member.example.name}: support {'ok' if row['support_exact'] else 'WRONG ' + str(extra)}; "
-              f"{errors}; {seconds:.1f} s" + (f"; FAILED {failure}" if failure else ""), flush=True)
+              f"{errors}; " + "".join(f"diffusion {d['state']} {d['selected']} {100 * d['error']:.1f}%; "
+                                      for d in row.get("diffusion", []))
+              + f"{seconds:.1f} s" + (f"; FAILED {failure}" if failure else ""), flush=True)
     print()
     print(table(rows), flush=True)
     if a.json:

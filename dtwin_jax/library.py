@@ -84,13 +84,16 @@ class Library(eqx.Module):
     def uses_inputs(self) -> bool:
         return any(family == "input" for family, _ in self.blocks)
 
-    def __call__(self, x, u=None):
+    def __call__(self, x, u=None, smoothing=None):
         """Design matrix.
 
         **Arguments:**
 
         - `x`: states, shape `(..., m)`.
         - `u`: inputs, shape `(..., n)`; needed only if the library has the `input` family.
+        - `smoothing`: optional variances `(m,)`: the non-smooth families (`sign`, `Abs`,
+          `x*Abs(y)`) are then their expectations over `x_j + N(0, smoothing_j)` (the
+          Gaussian-smoothed `sign(x) -> erf(x / sqrt(2 c))`); zero keeps them exact.
 
         **Returns:** `L`, shape `(..., K)`, float64.
         """
@@ -103,11 +106,13 @@ class Library(eqx.Module):
             u = jnp.asarray(u, dtype=jnp.float64)
             if u.ndim < 1 or u.shape[-1] != self.num_inputs:
                 raise DataError(f"library expects inputs of shape (..., {self.num_inputs}), got {u.shape}")
-        return _design(self, x, u)
+        if smoothing is not None:
+            smoothing = jnp.broadcast_to(jnp.asarray(smoothing, dtype=jnp.float64), (self.num_states,))
+        return _design(self, x, u, smoothing)
 
-    def eval_single(self, x, u=None):
+    def eval_single(self, x, u=None, smoothing=None):
         """One sample: `x` shape `(m,)`, `u` shape `(n,)` -> shape `(K,)`."""
-        return self(x, u)
+        return self(x, u, smoothing)
 
     def subset(self, keep) -> "Library":
         """The library of the columns `keep` (indices or a `(K,)` mask), in library order.
@@ -129,13 +134,44 @@ class Library(eqx.Module):
 
 # Jitted so eager calls compile once per library and shape, not once per primitive.
 @functools.partial(jax.jit, static_argnums=0)
-def _design(lib, x, u):
-    cols = [_eval_block(family, np.asarray(idx, dtype=np.intp), x, u) for family, idx in lib.blocks]
+def _design(lib, x, u, smoothing=None):
+    cols = [_eval_block(family, np.asarray(idx, dtype=np.intp), x, u, smoothing) for family, idx in lib.blocks]
     return jnp.concatenate(cols, axis=-1)
 
 
-def _eval_block(family, idx, x, u):
-    """Columns of one family; `idx` as in `Library.blocks`, shape `(k, m)` or `(k, 1|2)`."""
+def _smoothed_sign(x, c):
+    """`E[sign(x + sqrt(c) Z)] = erf(x / sqrt(2 c))`; `sign(x)` where `c == 0`."""
+    safe = jnp.where(c > 0, c, 1.0)
+    return jnp.where(c > 0, jax.scipy.special.erf(x / jnp.sqrt(2 * safe)), jnp.sign(x))
+
+
+def _smoothed_abs(x, c):
+    """`E|x + sqrt(c) Z| = x erf(x / sqrt(2c)) + sqrt(2c / pi) exp(-x^2 / 2c)`."""
+    safe = jnp.where(c > 0, c, 1.0)
+    bump = jnp.where(c > 0, jnp.sqrt(2 * safe / jnp.pi) * jnp.exp(-(x**2) / (2 * safe)), 0.0)
+    return x * _smoothed_sign(x, c) + bump
+
+
+def _smoothed_xabs(x, c):
+    """`E[y |y|]` for `y = x + sqrt(c) Z`: `(x^2 + c) erf(x / sqrt(2c)) + x sqrt(2c / pi) exp(-x^2 / 2c)`."""
+    safe = jnp.where(c > 0, c, 1.0)
+    bump = jnp.where(c > 0, jnp.sqrt(2 * safe / jnp.pi) * jnp.exp(-(x**2) / (2 * safe)), 0.0)
+    return (x**2 + c) * _smoothed_sign(x, c) + x * bump
+
+
+def _eval_block(family, idx, x, u, smoothing=None):
+    """Columns of one family; `idx` as in `Library.blocks`, shape `(k, m)` or `(k, 1|2)`.
+    `smoothing (m,)` variances replace the non-smooth families by their Gaussian averages."""
+    if smoothing is not None and family in ("sign", "abs", "xabs"):
+        i, j = idx[:, 0], idx[:, -1]
+        c = smoothing[j]
+        if family == "sign":
+            return _smoothed_sign(x[..., i], c)
+        if family == "abs":
+            return _smoothed_abs(x[..., i], c)
+        same = jnp.asarray(idx[:, 0] == idx[:, 1])
+        # x_i |x_j| with i != j: independent increments (smoothing acts on velocities only).
+        return jnp.where(same, _smoothed_xabs(x[..., j], c), x[..., i] * _smoothed_abs(x[..., j], c))
     if family == "poly":
         degree = int(idx.sum(axis=1).max())
         # Powers x**0..x**P by repeated products: exact x**0 == 1 and no pow() calls.

@@ -66,15 +66,19 @@ class DriftStep(eqx.Module):
     regressed: tuple[int, ...] = eqx.field(static=True)
     dt: float = eqx.field(static=True)
     substeps: int = eqx.field(static=True, default=1)
+    smoothing: jax.Array | None = None
 
     @classmethod
-    def from_coefficients(cls, nominal: LinearSecondOrder, library: Library, coefficients, dt: float):
+    def from_coefficients(cls, nominal: LinearSecondOrder, library: Library, coefficients, dt: float,
+                          smoothing=None):
         """The drift of `coefficients (r, K)` of `library` for `nominal`'s regressed states,
-        keeping only the terms in use."""
+        keeping only the terms in use. `smoothing (m,)`: variances over which the non-smooth
+        terms (`sign`, `Abs`) are averaged (:meth:`Library.__call__`): the mean drift over a
+        step whose Brownian increment crosses a friction's discontinuity."""
         coef = np.asarray(coefficients)
         keep = np.any(coef != 0, axis=0)
         regressed = tuple(int(i) for i in nominal.regressed_index)
-        return cls(nominal, library.subset(keep), jnp.asarray(coef[:, keep]), regressed, dt)
+        return cls(nominal, library.subset(keep), jnp.asarray(coef[:, keep]), regressed, dt, 1, smoothing)
 
     @classmethod
     def true(cls, example) -> "DriftStep":
@@ -85,7 +89,7 @@ class DriftStep(eqx.Module):
 
     def perturbation(self, x):
         """Discovered extra rate `(m,)` at `x (m,)`."""
-        h = self.coefficients @ self.library.eval_single(x)
+        h = self.coefficients @ self.library.eval_single(x, None, self.smoothing)
         return jnp.zeros(x.shape[-1], h.dtype).at[jnp.asarray(self.regressed)].set(h)
 
     def rate(self, x):

@@ -182,14 +182,14 @@ def _ensembles(example, sim_keys, records: int):
     return jax.vmap(lambda k: systems.simulate_example_sde(example, k, num_records=records)["x"])(sim_keys)
 
 
-def _drift_stats(example, lib, level, x, key, half_width: int):
+def _drift_stats(example, lib, level, x, key):
     nominal = example.system.nominal
     y = measurement.add_noise(key, x, level)
     return output_only_drift_stats(nominal, lib, y, example.dt, kramers_moyal.noise_variance(y), jax.random.fold_in(key, 1))
 
 
 @eqx.filter_jit
-def _oo_drift_program(example, lib, levels, keys, truth, support, records, half_width, settings, method,
+def _oo_drift_program(example, lib, levels, keys, truth, support, records, settings, method,
                       pip_threshold, batch_size):
     sim_keys, noise_keys, chain_keys = keys
     x = _ensembles(example, sim_keys, records)
@@ -200,7 +200,7 @@ def _oo_drift_program(example, lib, levels, keys, truth, support, records, half_
     lv = jnp.repeat(levels, Rp)
     rep = jnp.tile(jnp.arange(Rp), L)
     stats = jax.lax.map(
-        lambda a: _drift_stats(example, lib, a[0], x[a[1]], noise_keys[a[1]], half_width),
+        lambda a: _drift_stats(example, lib, a[0], x[a[1]], noise_keys[a[1]]),
         (lv, rep), batch_size=batch_size,
     )
     stats = jax.tree.map(lambda a: a.reshape((L, Rp) + a.shape[1:]), stats)
@@ -416,7 +416,7 @@ def noise_sweep(
                               hw, settings, method, pip_threshold)
         else:
             out, x = _oo_drift_program(ex, lib, jnp.asarray(levels), keys, jnp.asarray(truth),
-                                       jnp.asarray(support), records, hw, settings,
+                                       jnp.asarray(support), records, settings,
                                        method, pip_threshold, batch_size)
         out = jax.tree.map(np.asarray, out)
     seconds = time.perf_counter() - start

@@ -381,7 +381,13 @@ def update_output_only(
     regressed = [names[i] for i in nominal.regressed_index]
     trace = _sample_equations(drift_stats, settings, seed, progress)
     drift = _posteriors(trace, regressed, "drift", lib.names, pip_threshold)
-    step = statespace.DriftStep.from_coefficients(nominal, lib, np.stack([e.coefficients for e in drift]), dt)
+    # One step's mean drift: friction's sign averaged over half a step's Brownian increment.
+    residual_var = np.array([e.sigma2.mean() for e in drift])
+    gamma_drift = brownian_variance(nominal, dt, noise_var, residual_var)
+    step_smoothing = jnp.zeros(m).at[jnp.asarray(nominal.velocity_index)].set(0.5 * dt * gamma_drift)
+    step = statespace.DriftStep.from_coefficients(
+        nominal, lib, np.stack([e.coefficients for e in drift]), dt, step_smoothing
+    )
     pilot, window = kramers_moyal.preaveraged_diffusion(nominal, rec.x, dt, noise_var, step.perturbation)
     y = statespace.segments(rec.x)
     gamma, gamma_cov, fitted_noise, lin = statespace.diffusion_mle(step, y, noise_var, pilot)
@@ -480,12 +486,33 @@ def output_only_drift_stats(nominal: LinearSecondOrder, lib: Library, x, dt, noi
     chosen = included > 0.5 * trace.gamma.shape[1] * trace.gamma.shape[2]
     coef = jnp.where(chosen, trace.theta.sum(axis=(1, 2)) / jnp.maximum(included, 1), 0.0)
     regressed = jnp.asarray(nominal.regressed_index)
+    gamma = brownian_variance(nominal, dt, noise_var, trace.sigma2.mean(axis=(1, 2)))
+    # Gamma 1.5 dt: the step k+1 -> k+2 seen from sample k; the noise's own smoothing is s^2.
+    vel = jnp.asarray(nominal.velocity_index)
+    c = jnp.maximum(1.5 * dt * gamma - jnp.asarray(noise_var)[vel], 0.0)
+    smoothing = jnp.zeros(nominal.m).at[vel].set(c)
 
     def perturbation(z):
-        return jnp.zeros(z.shape[-1], z.dtype).at[regressed].set(coef @ lib.eval_single(z))
+        return jnp.zeros(z.shape[-1], z.dtype).at[regressed].set(coef @ lib.eval_single(z, None, smoothing))
 
-    st = kramers_moyal.drift_statistics(nominal, lib, x, dt, noise_var, perturbation)
+    st = kramers_moyal.drift_statistics(nominal, lib, x, dt, noise_var, perturbation, smoothing=smoothing)
     return st._replace(gram=_nearest_pd(st.gram))
+
+
+def brownian_variance(nominal: LinearSecondOrder, dt, noise_var, residual_var) -> jax.Array:
+    """The velocities' diffusion ``Gamma (d,)`` seen in the drift regression's residual
+    variance ``residual_var (r,)`` (target units), less the measurement noise's share.
+
+    A rough estimate (it holds the drift's misfit too) for smoothing the non-smooth library
+    families: over a step the velocity moves by a Brownian increment of variance
+    ``Gamma * time``, and ``E[sign(v)]`` over it is a smoothed sign (:meth:`Library.__call__`).
+    """
+    Phi, Psi = kramers_moyal.propagators(nominal, dt)
+    noise = jnp.diag(jnp.asarray(noise_var))
+    back = jnp.linalg.inv(Psi)
+    noise_in_targets = jnp.diagonal(back @ (noise + Phi @ noise @ Phi.T) @ back.T)
+    vel = jnp.asarray(nominal.velocity_index)
+    return dt * jnp.maximum(jnp.asarray(residual_var)[: nominal.d] - noise_in_targets[vel], 0.0)
 
 
 def _nearest_pd(gram):
