@@ -50,3 +50,28 @@ def test_kinematic_smoother_beats_savgol_and_estimates_noise():
     err_ks = np.sqrt(np.mean((ks - truth) ** 2, axis=0))
     print("rms state error raw", err_raw, "savgol", err_sg, "kinematic", err_ks)
     assert np.all(err_ks < 0.5 * err_sg) and np.all(err_sg < 0.6 * err_raw)
+
+
+def test_kinematic_smoother_noise_by_likelihood_on_friction():
+    """Coulomb friction and white-noise force: the velocity is rough at the sample scale and
+    the acceleration jumps, where a filter-residual noise estimate (4.7x too high on the
+    velocity) left the smoothed velocity 0.23x the sensor noise off on a similar case; the
+    likelihood fit leaves 0.17x here (measured)."""
+    import jax.numpy as jnp
+
+    from dtwin_jax.systems import Example, LinearSecondOrder, PerturbedSystem
+
+    def friction_and_drag(x, u, p):
+        v = x[1]
+        return jnp.stack([jnp.zeros_like(v), -(3.0 * jnp.sign(v) + 5.0 * v * jnp.abs(v)) / 2.0])
+
+    nominal = LinearSecondOrder.create([[2.0]], [[3.0]], [[800.0]], [[2.0]])
+    ex = Example("friction", PerturbedSystem(nominal, friction_and_drag, {}), jnp.zeros(2), 1e-3, 1.0,
+                 1e3**0.5, {}, "poly:1", "")
+    sim = systems.simulate_example(ex, jax.random.key(0))
+    meas = measure(jax.random.key(1), sim["t"], sim["x"], sim["xdot"], sim["u"], level=0.02)
+    xs = np.asarray(kinematic_smoother(nominal, 1e-3, meas.x, meas.xdot, meas.u))
+    raw = np.sqrt(np.mean((np.asarray(meas.x) - np.asarray(sim["x"])) ** 2, axis=0))
+    err = np.sqrt(np.mean((xs - np.asarray(sim["x"])) ** 2, axis=0))
+    print("raw", raw, "smoothed", err, "ratio", err / raw)
+    assert np.all(err / raw < 0.19), err / raw

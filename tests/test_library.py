@@ -272,3 +272,34 @@ def test_speed():
     dt = (time.perf_counter() - t0) / reps
     print(f"default library m=4 n=2 N=1000 (K={lib.K}): {dt * 1e3:.2f} ms per call (jitted)")
     assert dt < 0.05
+
+
+def test_smoothed_nonsmooth_families_are_gaussian_averages():
+    """`lib(x, smoothing=c)` is the expectation of the exact columns over x + N(0, c)."""
+    lib = parse_library("sign,abs,xabs", 2, 0)
+    c = np.array([0.0, 0.3**2])  # x1 exact, x2 smoothed
+    x = np.array([[0.1, 0.05], [-0.2, 0.4], [0.3, -0.7]])
+    # E[f(Z)], Z ~ N(0, 1), by a fine midpoint rule (the integrands jump, so no Gauss rule).
+    z = np.linspace(-9, 9, 90001)
+    weights = np.exp(-0.5 * z**2) / np.sqrt(2 * np.pi) * (z[1] - z[0])
+    shifted = x[:, None, :] + np.sqrt(c)[None, None, :] * z[None, :, None]  # (3, Z, 2)
+    expected = np.einsum("q,pqk->pk", weights, np.asarray(lib(shifted)))
+    got = np.asarray(lib(x, None, c))
+    np.testing.assert_allclose(got, expected, atol=1e-4)  # the grid weight at a jump is 8e-5
+    np.testing.assert_array_equal(np.asarray(lib(x, None, np.zeros(2))), np.asarray(lib(x)))
+
+
+def test_hermite_polynomials_are_unbiased_for_monomials():
+    """E[T_n(x + eps)] = x^n for eps ~ N(0, s^2): the exact errors-in-variables correction."""
+    from numpy.polynomial.hermite_e import hermegauss
+
+    from dtwin_jax.kramers_moyal import _hermite_table
+
+    s2 = np.array([0.04, 0.5])
+    x = np.array([[0.3, -1.2], [-0.8, 0.1]])
+    nodes, weights = hermegauss(20)  # exact for polynomials of degree < 40
+    weights = weights / weights.sum()
+    noisy = x[:, None, :] + np.sqrt(s2) * nodes[None, :, None]  # (2, 20, 2)
+    T = np.asarray(_hermite_table(noisy.reshape(-1, 2), s2, 12)).reshape(2, 20, 2, 13)
+    mean = np.einsum("q,pqjn->pjn", weights, T)
+    np.testing.assert_allclose(mean, x[:, :, None] ** np.arange(13), rtol=1e-9, atol=1e-12)
