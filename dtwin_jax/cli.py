@@ -122,7 +122,7 @@ def _discover(args) -> int:
             settings=_settings(args), seed=args.seed, progress=not args.quiet,
         )
     print(result.summary())
-    _print_warnings(result)
+    _print_diagnostics(result)
     if args.out:
         write_json(args.out, result.to_json())
     if args.plot:
@@ -193,8 +193,15 @@ def _demo_output_only(args, ex, say) -> int:
     return 0
 
 
-def _print_warnings(result) -> None:
-    """Residual checks, chain disagreement and R-hat, one line each on standard error."""
+def _print_diagnostics(result) -> None:
+    """One line of convergence and posterior-predictive diagnostics on standard output, then
+    each warning (residual checks, chain disagreement, R-hat) on standard error."""
+    diag = result.diagnostics()
+    failed = sum(not c.get("ok", True) for c in result.checks.values())
+    print(f"diagnostics: R-hat max {diag['rhat_max']}, bulk ESS min {diag['ess_bulk_min']}, "
+          f"largest PIP disagreement between chains {diag['pip_chain_spread_max']:.3f}, "
+          f"residual checks {'passed' if not failed else f'failed for {failed} equation(s)'}, "
+          f"{diag['seconds']} s")
     for w in result.warnings():
         print(f"dtwin-jax: warning: {w}", file=sys.stderr)
 
@@ -216,9 +223,7 @@ def _finish_demo(ex, result, out: Path, say, arrays: dict, header: list[str],
         print(f"{state}: " + " + ".join(f"{c:g} {t}" for t, c in terms.items()))
     for state, gamma in (diffusion or {}).items():
         print(f"{state} [diffusion]: {gamma:g}")
-    diag = result.diagnostics()
-    print(f"R-hat max {diag['rhat_max']}, bulk ESS min {diag['ess_bulk_min']}, {diag['seconds']} s")
-    _print_warnings(result)
+    _print_diagnostics(result)
     write_json(out / "result.json", result.to_json())
     plot_pip(result, out / "pip.png")
     with atomic_path(out / "measurements.npz") as tmp:
