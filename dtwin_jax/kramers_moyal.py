@@ -113,9 +113,9 @@ def _directional(fn, x, e):
     return jax.jvp(g, (x,), (e,))
 
 
-def _derivatives(lib: Library, x):
+def _derivatives(lib: Library, x, smoothing=None):
     """Per state `j`, `d_j L` and `d_j^2 L`, each `(m, P, K)`, at `x (P, m)`."""
-    f = lambda z: lib.eval_single(z, None)
+    f = lambda z: lib.eval_single(z, None, smoothing)
     eye = jnp.eye(x.shape[-1], dtype=x.dtype)
     d1, d2 = jax.vmap(lambda xk: jax.vmap(lambda e: _directional(f, xk, e))(eye))(x)
     return jnp.moveaxis(d1, 1, 0), jnp.moveaxis(d2, 1, 0)
@@ -156,7 +156,8 @@ def drift_statistics(
     increment, and `E[sign(v_{k+1.5}) | v_k]` is a smoothed sign, which `sign(v_k)` with
     derivatives that vanish almost everywhere cannot see (Coulomb friction came out 65% off
     beside spurious `x2`, `x2**3`). Pass `Gamma tau - s^2` to also undo the measurement
-    noise's own smoothing; those columns then get no further noise correction.
+    noise's own smoothing; those columns then get no correction of their mean, only of their
+    scatter.
     Returns `SuffStats` batched over the `r` regressed states (see the module docstring).
     """
     x = jnp.asarray(x)
@@ -179,14 +180,16 @@ def drift_statistics(
     xty = raw_xty = jnp.zeros((reg.size, K))
     for start in range(0, X.shape[0], chunk):
         sl = slice(start, start + chunk)
-        d1, d2 = _derivatives(lib, X[sl])
+        d1, d2 = _derivatives(lib, X[sl], smoothing)
         first, second = ahead_fn(X[sl])
         L = lib(X[sl], None, smoothing)
         Lt = L + 1.5 * dt * first + (7.0 / 6.0) * dt**2 * second
         # E[L_a L_b (X + eps)] = L_a L_b + 1/2 sum_j s_j^2 (d_j^2 L_a L_b + 2 d_j L_a d_j L_b
         # + L_a d_j^2 L_b): subtract the noise's part, estimated at the noisy states.
+        # A smoothed column's mean shift is already undone by its smaller smoothing (no W2);
+        # its noise still scatters it (D1, from the smoothed column's derivatives).
         W2 = jnp.einsum("j,jpk->pk", s2, d2) * corrected
-        D1 = (jnp.sqrt(s2)[:, None, None] * d1 * corrected).reshape(-1, K)
+        D1 = (jnp.sqrt(s2)[:, None, None] * d1).reshape(-1, K)
         cross = Lt.T @ W2
         plain = Lt.T @ Lt
         raw_gram += plain
