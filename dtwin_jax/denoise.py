@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from dtwin_jax.measurement import (
     highest_natural_frequency_hz,

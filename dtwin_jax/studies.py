@@ -24,7 +24,6 @@ seconds per level and replicate with 100 records).
 from __future__ import annotations
 
 import csv
-import json
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
