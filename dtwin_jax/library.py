@@ -136,6 +136,8 @@ class Library(eqx.Module):
 @functools.partial(jax.jit, static_argnums=0)
 def _design(lib, x, u, smoothing=None):
     cols = [_eval_block(family, np.asarray(idx, dtype=np.intp), x, u, smoothing) for family, idx in lib.blocks]
+    if not cols:  # an empty subset: a model with no discovered terms
+        return jnp.zeros(x.shape[:-1] + (0,), x.dtype)
     return jnp.concatenate(cols, axis=-1)
 
 

@@ -303,3 +303,11 @@ def test_hermite_polynomials_are_unbiased_for_monomials():
     T = np.asarray(_hermite_table(noisy.reshape(-1, 2), s2, 12)).reshape(2, 20, 2, 13)
     mean = np.einsum("q,pqjn->pjn", weights, T)
     np.testing.assert_allclose(mean, x[:, :, None] ** np.arange(13), rtol=1e-9, atol=1e-12)
+
+
+def test_empty_subset_evaluates_to_no_columns():
+    # A sweep level where no term passes the PIP threshold gives a model with no terms.
+    lib = parse_library("poly:3,sign", 2, 0)
+    empty = lib.subset(np.zeros(len(lib.names), bool))
+    assert empty.names == ()
+    assert empty(jnp.ones((7, 2))).shape == (7, 0)
