@@ -42,6 +42,7 @@ def main():
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out-dir", default="sweep-results")
     p.add_argument("--quiet", action="store_true")
+    p.add_argument("--no-repeat", action="store_true", help="skip the third (cached-program) timing run")
     args = p.parse_args()
     settings = SamplerSettings(num_chains=args.chains, num_draws=args.draws, num_burnin=args.burn_in)
     levels = np.linspace(0.0, args.max_level, args.num_levels)
@@ -50,7 +51,7 @@ def main():
         # One level first (its own compilation), then all levels (another shape: compiled again).
         _, t_one = timed(args.example, levels[[1]], mode, args, settings)
         res, t_all = timed(args.example, levels, mode, args, settings)
-        _, t_again = timed(args.example, levels, mode, args, settings)  # cached program
+        t_again = float("nan") if args.no_repeat else timed(args.example, levels, mode, args, settings)[1]
         print(f"== {args.example}, {mode}: {levels.size} levels x {args.replicates} replicates x "
               f"{args.chains} chains x {args.draws} draws (+{args.burn_in} burn-in)"
               + (f", {args.records} records" if mode == "output-only" else ""))

@@ -6,8 +6,9 @@
 Member `i` is `zoo.draw_member(seed + i)` (the families cycle), measured at its own noise
 level (2-5% on every signal). Input-output: `simulate_example`, then `measure` on states,
 accelerations and inputs, then `update_input_output` with the measured accelerations.
-Output-only: `simulate_example_sde` with `--records` records, `add_noise` on the states,
-then `update_output_only`. Scores: exact support (every regressed equation's selected terms
+Output-only: `simulate_example_sde` with `--records` records, `add_noise` on the states
+(one sensor per state: the noise std is the level times the ensemble's std, the same in
+every record), then `update_output_only`. Scores: exact support (every regressed equation's selected terms
 are exactly its true terms), 95% HDI coverage of every true coefficient, and its relative
 error `|mean / truth - 1|` (mean given inclusion; a never-included term counts 100%).
 Prints one progress line per member and a markdown table by family; `--json` writes every
@@ -39,7 +40,7 @@ def _update(member: zoo.Member, framework: str, records: int, settings: SamplerS
                                      library=ex.library, settings=settings, seed=member.seed)
     else:
         sim = systems.simulate_example_sde(ex, sim_key, num_records=records)
-        x = add_noise(noise_key, sim["x"], level)
+        x = add_noise(noise_key, sim["x"], level, per_record=False)  # one sensor per state
         result = update_output_only(nominal, sim["t"], x, library=ex.library_output_only,
                                     settings=settings, seed=member.seed)
     return result.equations

@@ -85,16 +85,18 @@ def propagators(nominal: LinearSecondOrder, dt: float) -> tuple[jax.Array, jax.A
     return E[:m, :m], E[:m, m:]
 
 
-def noise_variance(x) -> jax.Array:
-    """White measurement-noise variance `(m,)` of states `x (R, N, m)`, pooled over records.
+def noise_variance(x, per_record: bool = False) -> jax.Array:
+    """White measurement-noise variance `(m,)` of states `x (R, N, m)`, pooled over records,
+    or `(R, m)`, one per record, with `per_record`.
 
     Third and fourth differences: white noise adds `C(2p, p) s^2` to the mean square of the
     `p`-th difference, a Brownian velocity `C(2p-2, p-1) Gamma dt`, and a smooth signal only
     `O((omega dt)^(2p))`; `V_4 - (10/3) V_3 = (10/3) s^2` cancels the Brownian part.
     """
     x = jnp.asarray(x)
-    V3 = jnp.mean(jnp.diff(x, n=3, axis=1) ** 2, axis=(0, 1))
-    V4 = jnp.mean(jnp.diff(x, n=4, axis=1) ** 2, axis=(0, 1))
+    axis = 1 if per_record else (0, 1)
+    V3 = jnp.mean(jnp.diff(x, n=3, axis=1) ** 2, axis=axis)
+    V4 = jnp.mean(jnp.diff(x, n=4, axis=1) ** 2, axis=axis)
     return jnp.maximum(0.3 * V4 - V3, 0.0)
 
 

@@ -34,11 +34,13 @@ def _concrete_float(value) -> float | None:
     return float(np.asarray(value))
 
 
-def add_noise(key: Array, signal: Float[Array, "... N c"], level) -> Float[Array, "... N c"]:
+def add_noise(key: Array, signal: Float[Array, "... N c"], level, *, per_record: bool = True) -> Float[Array, "... N c"]:
     """Add Gaussian noise of std `level * std(signal)`.
 
     The std is taken over time, per column and per record, so `level` is a
     noise-to-signal ratio in `[0, 1]`. `signal` is `(N,)`, `(N, c)` or `(R, N, c)`.
+    With `per_record=False` an ensemble's std is taken over all records: one sensor per
+    column, whose noise does not grow with a record's amplitude.
     """
     signal = jnp.asarray(signal)
     if signal.ndim not in (1, 2, 3):
@@ -50,7 +52,8 @@ def add_noise(key: Array, signal: Float[Array, "... N c"], level) -> Float[Array
         if lv == 0.0:
             return signal
     time_axis = 0 if signal.ndim == 1 else signal.ndim - 2
-    scale = level * jnp.std(signal, axis=time_axis, keepdims=True)
+    axis = (0, 1) if signal.ndim == 3 and not per_record else time_axis
+    scale = level * jnp.std(signal, axis=axis, keepdims=True)
     return signal + scale * jax.random.normal(key, signal.shape, dtype=signal.dtype)
 
 

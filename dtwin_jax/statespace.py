@@ -205,10 +205,14 @@ def segments(x, length: int = 1000):
 
 
 def _noise_floor(y, noise_var):
-    # A state measured without noise and driven without diffusion (a damage variable) would
-    # make the innovation covariance singular; a floor far below any real noise avoids that.
+    """Noise variances `(m,)` or `(R, m)` -> one row per record of `y (R, N, m)`, floored.
+
+    A state measured without noise and driven without diffusion (a damage variable) would
+    make the innovation covariance singular; a floor far below any real noise avoids that.
+    """
     var = jnp.var(y.reshape(-1, y.shape[-1]), axis=0)
-    return jnp.maximum(jnp.asarray(noise_var), 1e-12 * var + 1e-300)
+    r = jnp.maximum(jnp.asarray(noise_var), 1e-12 * var + 1e-300)
+    return jnp.broadcast_to(r, (y.shape[0], y.shape[-1]))
 
 
 @eqx.filter_jit
@@ -216,7 +220,7 @@ def _linearize_records(step: DriftStep, x):
     return jax.vmap(lambda xx: linearize(step, xx))(x)
 
 
-_smoothed_means = jax.jit(jax.vmap(lambda l, yy, g, r: smoother(l, yy, g, r).mean, (0, 0, None, None)))
+_smoothed_means = jax.jit(jax.vmap(lambda l, yy, g, r: smoother(l, yy, g, r).mean, (0, 0, None, 0)))
 
 
 def _relinearized(step: DriftStep, y, gamma, r, passes: int):
@@ -229,14 +233,16 @@ def _relinearized(step: DriftStep, y, gamma, r, passes: int):
 
 
 def _unpack(params, r, velocity_index):
-    """`params = [log Gamma (d), log s_v^2 (d)]` -> `(Gamma, noise variances (m,))`."""
+    """`params = [log Gamma (d), log f_v (d)]` -> `(Gamma, noise variances (R, m))`: each
+    record's velocity noise is its own estimate in `r (R, m)` times a common factor `f_v`."""
     d = len(velocity_index)
-    return jnp.exp(params[:d]), r.at[np.asarray(velocity_index)].set(jnp.exp(params[d:]))
+    factor = jnp.ones(r.shape[-1], r.dtype).at[np.asarray(velocity_index)].set(jnp.exp(params[d:]))
+    return jnp.exp(params[:d]), r * factor
 
 
 def _loglik(params, lin, y, r, velocity_index):
     gamma, noise = _unpack(params, r, velocity_index)
-    return jnp.sum(jax.vmap(lambda l, yy: _filter(l, yy, gamma, noise)[-1])(lin, y))
+    return jnp.sum(jax.vmap(lambda l, yy, rr: _filter(l, yy, gamma, rr)[-1])(lin, y, noise))
 
 
 _value = jax.jit(_loglik, static_argnums=4)
@@ -257,12 +263,14 @@ def diffusion_mle(
 ):
     """Maximum-likelihood diffusion `Gamma (d,)` and velocity noise of records `y (R, N, m)`.
 
-    `noise_var (m,)` the states' noise variances (the velocities' are a first guess and
-    fitted too: a difference-based estimate's error of 0.5% of `Gamma dt` moves `Gamma`
-    by 1%); `start (d,)` a positive first guess of `Gamma`. In each of `rounds`, the
+    `noise_var (m,)` the states' noise variances, or `(R, m)` one row per record (a sensor
+    whose noise scales with each record's amplitude: a pooled variance would read the
+    loud records' noise as diffusion that grows with the state); the velocities' are a
+    first guess, scaled by a fitted common factor (a difference-based estimate's error of
+    0.5% of `Gamma dt` moves `Gamma` by 1%); `start (d,)` a positive first guess of `Gamma`. In each of `rounds`, the
     transition is linearized along the states smoothed at the current values, then Newton
     steps in the logs (at most a factor e^1.5 each, halved while the likelihood falls) find
-    the maximum. Returns `(Gamma (d,), Gamma_cov (d, d), noise_var (m,), lin)`: the inverse
+    the maximum. Returns `(Gamma (d,), Gamma_cov (d, d), noise_var (R, m), lin)`: the inverse
     observed information of `Gamma` with the noise profiled out, the fitted noise variances
     and the last linearization (batched over records).
     """
@@ -271,8 +279,8 @@ def diffusion_mle(
     r = _noise_floor(y, noise_var)
     gamma0 = jnp.maximum(jnp.asarray(start, y.dtype), 1e-300)
     # A noise-free record has its MLE at s_v^2 = 0; start no lower than 1e-4 of an increment.
-    s2 = jnp.maximum(r[np.asarray(vel)], 1e-4 * gamma0 * step.dt)
-    params = jnp.log(jnp.concatenate([gamma0, s2]))
+    r = r.at[:, np.asarray(vel)].max(1e-4 * gamma0 * step.dt)
+    params = jnp.concatenate([jnp.log(gamma0), jnp.zeros(len(vel), y.dtype)])
     for round_ in range(rounds):
         gamma, noise = _unpack(params, r, vel)
         lin = _relinearized(step, y, gamma, noise, 2 if round_ == 0 else 1)
@@ -318,8 +326,8 @@ def diffusion_targets(lin: Linearization, y, noise_var, gamma, velocity_index: t
     r = _noise_floor(y, noise_var)
     vel = np.asarray(velocity_index)
 
-    def one(l, yy):
-        s = smoother(l, yy, gamma, r)
+    def one(l, yy, rr):
+        s = smoother(l, yy, gamma, rr)
         x0, P0, P1, J = s.mean[:-1], s.cov[:-1], s.cov[1:], l.jac
         res = s.mean[1:] - l.value - jnp.einsum("kij,kj->ki", J, x0 - l.point[:-1])
         JC = jnp.einsum("kij,klj->kil", J, s.cross)  # J cov(X_k, X_{k+1})
@@ -330,7 +338,7 @@ def diffusion_targets(lin: Linearization, y, noise_var, gamma, velocity_index: t
         unit = l.unit_cov[:, np.arange(vel.size), vel, vel]  # (N-1, d)
         return second[:, vel, vel] / unit, x0
 
-    return jax.vmap(one)(lin, y)
+    return jax.vmap(one)(lin, y, r)
 
 
 @functools.partial(jax.jit, static_argnums=4)
@@ -347,9 +355,9 @@ def standardized_innovations(lin: Linearization, y, noise_var, gamma, velocity_i
     r = _noise_floor(y, noise_var)
     vel = np.asarray(velocity_index)
 
-    def one(l, yy):
-        _, _, mp, Pp, _ = _filter(l, yy, gamma, r)
-        scale = jnp.sqrt(Pp[:, vel, vel] + r[vel])
+    def one(l, yy, rr):
+        _, _, mp, Pp, _ = _filter(l, yy, gamma, rr)
+        scale = jnp.sqrt(Pp[:, vel, vel] + rr[vel])
         return (yy[1:, vel] - mp[:, vel]) / scale, mp
 
-    return jax.vmap(one)(lin, y)
+    return jax.vmap(one)(lin, y, r)

@@ -39,6 +39,10 @@ def test_noise_std_matches_level():
     noise = add_noise(jax.random.PRNGKey(1), records, level) - records
     ratio = jnp.std(noise, axis=1) / (level * jnp.std(records, axis=1))
     assert ratio.shape == (2, 2) and jnp.all(jnp.abs(ratio - 1.0) < 0.1)
+    # One sensor per column: the same noise std in every record.
+    noise = add_noise(jax.random.PRNGKey(1), records, level, per_record=False) - records
+    ratio = jnp.std(noise, axis=1) / (level * jnp.std(records, axis=(0, 1)))
+    assert ratio.shape == (2, 2) and jnp.all(jnp.abs(ratio - 1.0) < 0.1)
 
     assert add_noise(jax.random.PRNGKey(2), signal, 0.0) is signal
     with pytest.raises(DataError, match="noise level"):
