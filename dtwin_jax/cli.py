@@ -195,12 +195,12 @@ def _demo_output_only(args, ex, say) -> int:
 
 def _print_diagnostics(result) -> None:
     """One line of convergence and posterior-predictive diagnostics on standard output, then
-    each warning (residual checks, chain disagreement, R-hat) on standard error."""
+    each warning (residual and noise-correction checks, chain disagreement, R-hat) on standard error."""
     diag = result.diagnostics()
     failed = sum(not c.get("ok", True) for c in result.checks.values())
     print(f"diagnostics: R-hat max {diag['rhat_max']}, bulk ESS min {diag['ess_bulk_min']}, "
           f"largest PIP disagreement between chains {diag['pip_chain_spread_max']:.3f}, "
-          f"residual checks {'passed' if not failed else f'failed for {failed} equation(s)'}, "
+          f"checks {'passed' if not failed else f'failed: {failed} of {len(result.checks)}'}, "
           f"{diag['seconds']} s")
     for w in result.warnings():
         print(f"dtwin-jax: warning: {w}", file=sys.stderr)

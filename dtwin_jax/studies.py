@@ -184,7 +184,7 @@ def _ensembles(example, sim_keys, records: int):
 def _drift_stats(example, lib, level, x, key):
     nominal = example.system.nominal
     y = measurement.add_noise(key, x, level)
-    return output_only_drift_stats(nominal, lib, y, example.dt, kramers_moyal.noise_variance(y), jax.random.fold_in(key, 1))
+    return output_only_drift_stats(nominal, lib, y, example.dt, kramers_moyal.noise_variance(y), jax.random.fold_in(key, 1))[0]
 
 
 @eqx.filter_jit

@@ -7,9 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dtwin_jax import DataError, SamplerSettings, systems, update_output_only
+from dtwin_jax import DataError, SamplerSettings, kramers_moyal, systems, update_output_only
 from dtwin_jax.cli import main
 from dtwin_jax.io import write_nominal
+from dtwin_jax.library import parse_library
 from dtwin_jax.measurement import add_noise
 
 FAST = SamplerSettings(num_chains=2, num_draws=600, num_burnin=300)
@@ -145,3 +146,23 @@ def test_cli_discovers_drift_and_diffusion_from_a_file_without_u(tmp_path):
     diffusion = doc["equations"][1]
     assert [t["expr"] for t in diffusion["terms"]] == ["1"]
     assert abs(diffusion["terms"][0]["mean"] / 0.25 - 1) < 0.2
+
+
+def test_noise_correction_margin_flags_noise_beyond_the_library():
+    """Example 1, 100 records: the corrected Gram stays (nearly) definite at 5% noise and
+    loses definiteness at 35% (where the sweep selects 15-28 spurious terms)."""
+    from dtwin_jax.twin import MARGIN_WARN, _margin_check, correction_margin
+
+    ex = systems.example1().for_output_only()
+    nominal = ex.system.nominal
+    lib = parse_library(ex.library_output_only, nominal.m, 0)
+    sim = systems.simulate_example_sde(ex, jax.random.key(0), num_records=100)
+    margins = []
+    for level in (0.05, 0.35):
+        x = add_noise(jax.random.key(1), sim["x"], level)
+        st = kramers_moyal.drift_statistics(nominal, lib, x, ex.dt, kramers_moyal.noise_variance(x))
+        margins.append(float(correction_margin(st.gram)[0]))
+    print("margins", margins)
+    assert -1e-4 < margins[0] and margins[1] < 10 * MARGIN_WARN
+    assert _margin_check(margins[0])["ok"] and not _margin_check(margins[1])["ok"]
+    assert "noise too large" in _margin_check(margins[1])["warnings"][0]
