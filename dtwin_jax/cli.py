@@ -3,12 +3,33 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
 from dtwin_jax.errors import DataError
 
 __all__ = ["main"]
+
+
+class _Parser(argparse.ArgumentParser):
+    """Usage errors as one line on standard error, exit status 2 (formats.md)."""
+
+    def error(self, message):
+        self.exit(2, f"dtwin-jax: error: {message}\n")
+
+
+def _check_writable(path, *, folder: bool = False) -> None:
+    """Refuse an output path that cannot be written, before any work is done: its nearest
+    existing ancestor must be a writable folder, and the path itself not of the other kind."""
+    path = Path(path)
+    if path.exists() and path.is_dir() != folder:
+        raise DataError(f"output '{path}' exists and is {'not ' if folder else ''}a folder")
+    parent = path if folder else path.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise DataError(f"cannot write output '{path}': '{parent}' is not a writable folder")
 
 
 def _positive_int(text: str) -> int:
@@ -43,7 +64,7 @@ def _add_sampler_args(p: argparse.ArgumentParser, draws: int, burn_in: int) -> N
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="dtwin-jax",
         description="Update a digital twin: discover interpretable perturbations of a nominal model.",
     )
@@ -104,6 +125,9 @@ def _discover(args) -> int:
     from dtwin_jax.twin import update_input_output, update_output_only
 
     _check_threshold(args.pip_threshold)
+    for out in (args.out, args.plot):
+        if out:
+            _check_writable(out)
     nominal = load_nominal(args.nominal)
     data = load_measurements(args.data)
     mode = args.mode or ("input-output" if "u" in data else "output-only")
@@ -284,6 +308,8 @@ def _sweep(args) -> int:
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
+        if getattr(args, "out_dir", None):
+            _check_writable(args.out_dir, folder=True)
         if args.command == "sweep":
             return _sweep(args)
         return _discover(args) if args.command == "discover" else _demo(args)

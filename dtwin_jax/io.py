@@ -7,6 +7,7 @@ temporary file and rename it, so a failed run leaves nothing half-written.
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 import tomllib
@@ -153,6 +154,20 @@ class atomic_path:
         return False
 
 
+def json_safe(obj):
+    """``obj`` with every non-finite float replaced by None: JSON has no NaN or Infinity,
+    and strict parsers reject the bare tokens Python writes for them."""
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
 def write_json(path, obj) -> None:
+    """Write ``obj`` as strict JSON (non-finite numbers as null), atomically."""
+    text = json.dumps(json_safe(obj), indent=2, allow_nan=False)
     with atomic_path(path) as tmp:
-        Path(tmp).write_text(json.dumps(obj, indent=2) + "\n")
+        Path(tmp).write_text(text + "\n")

@@ -67,10 +67,44 @@ def test_bad_input_one_line_error_and_no_file(tmp_path, capsys, case):
     assert not list(tmp_path.glob(".result.json*"))  # no temporary left behind
 
 
+@pytest.mark.parametrize("argv", [
+    ["discover", "data.npz"],  # --nominal missing
+    ["discover", "data.npz", "--nominal", "n.toml", "--chains", "0"],
+    ["frobnicate"],
+    ["sweep", "--mode", "sideways"],
+])
+def test_usage_errors_are_one_line_with_status_2(capsys, argv):
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2
+    _error_line(capsys)
+
+
+def test_unwritable_out_is_refused_before_any_work(tmp_path, capsys):
+    # The data file does not exist: reaching it would be a different error.
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    for flag, target in (("--out", blocker / "result.json"), ("--out", tmp_path), ("--plot", blocker / "p.png")):
+        argv = ["discover", str(tmp_path / "missing.npz"), "--nominal", str(tmp_path / "missing.toml"), flag, str(target)]
+        assert main(argv) == 2
+        assert "output" in _error_line(capsys)
+    assert main(["sweep", "--out-dir", str(blocker)]) == 2
+    assert "is not a folder" in _error_line(capsys)
+
+
+def test_result_json_is_strict(tmp_path):
+    from dtwin_jax.io import write_json
+
+    write_json(tmp_path / "r.json", {"hdi": [float("nan"), 1.0], "rhat": float("inf"), "n": {"x": [2]}})
+    text = (tmp_path / "r.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    assert json.loads(text) == {"hdi": [None, 1.0], "rhat": None, "n": {"x": [2]}}
+
+
 def test_discover_writes_the_result_file(tmp_path, capsys):
     code, out = _run(tmp_path, _data(), extra=("--library", "poly:3,input", "--plot", str(tmp_path / "pip.png")))
     assert code == 0
-    doc = json.loads(out.read_text())
+    doc = json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"bare {c} in the result JSON"))
     assert doc["mode"] == "input-output" and doc["equations"][0]["state"] == "x2"
     assert set(doc["equations"][0]["pip"]) == {"1", "x1", "x2", "x1**2", "x1*x2", "x2**2", "x1**3", "x1**2*x2", "x1*x2**2", "x2**3", "u1"}
     assert (tmp_path / "pip.png").stat().st_size > 10_000
