@@ -154,12 +154,12 @@ def test_input_output_update_of_a_hardening_member(members):
 
 
 def test_output_only_update_of_a_coulomb_member(members):
-    """Output-only, 200 records, one noise level per sensor (as `benchmarks/zoo.py`):
+    """Output-only, 100 records, one noise level per sensor (as `benchmarks/zoo.py`):
     friction's `sign(x2)` alone in the drift, the constant alone in the diffusion, both
     within a few percent."""
     m = members[zoo.FAMILIES.index("coulomb")]
     ex = m.example
-    sim = systems.simulate_example_sde(ex, jax.random.key(10), num_records=200)
+    sim = systems.simulate_example_sde(ex, jax.random.key(10), num_records=100)
     x = add_noise(jax.random.key(11), sim["x"], m.noise_level, per_record=False)
     result = update_output_only(
         ex.system.nominal, sim["t"], x, library=ex.library_output_only,
