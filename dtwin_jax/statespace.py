@@ -245,12 +245,12 @@ def _loglik(params, lin, y, r, velocity_index):
     return jnp.sum(jax.vmap(lambda l, yy, rr: _filter(l, yy, gamma, rr)[-1])(lin, y, noise))
 
 
-_value = jax.jit(_loglik, static_argnums=4)
 _derivatives = jax.jit(
     lambda *a: (jax.grad(_loglik)(*a), jax.hessian(_loglik)(*a)), static_argnums=4
 )
 
 
+@eqx.filter_jit
 def diffusion_mle(
     step: DriftStep,
     y,
@@ -270,47 +270,53 @@ def diffusion_mle(
     0.5% of `Gamma dt` moves `Gamma` by 1%); `start (d,)` a positive first guess of `Gamma`. In each of `rounds`, the
     transition is linearized along the states smoothed at the current values, then Newton
     steps in the logs (at most a factor e^1.5 each, halved while the likelihood falls) find
-    the maximum. Returns `(Gamma (d,), Gamma_cov (d, d), noise_var (R, m), lin)`: the inverse
+    the maximum. Pure and jittable (vmapped over the levels and replicates of a study).
+    Returns `(Gamma (d,), Gamma_cov (d, d), noise_var (R, m), lin)`: the inverse
     observed information of `Gamma` with the noise profiled out, the fitted noise variances
     and the last linearization (batched over records).
     """
     y = jnp.asarray(y)
     vel = tuple(int(v) for v in step.nominal.velocity_index)
+    d = len(vel)
     r = _noise_floor(y, noise_var)
     gamma0 = jnp.maximum(jnp.asarray(start, y.dtype), 1e-300)
     # A noise-free record has its MLE at s_v^2 = 0; start no lower than 1e-4 of an increment.
     r = r.at[:, np.asarray(vel)].max(1e-4 * gamma0 * step.dt)
-    params = jnp.concatenate([jnp.log(gamma0), jnp.zeros(len(vel), y.dtype)])
+    params = jnp.concatenate([jnp.log(gamma0), jnp.zeros(d, y.dtype)])
     for round_ in range(rounds):
         gamma, noise = _unpack(params, r, vel)
         lin = _relinearized(step, y, gamma, noise, 2 if round_ == 0 else 1)
-        args = (lin, y, r, vel)
-        for _ in range(max_iter):
-            f = _value(params, *args)
-            g, H = _derivatives(params, *args)
-            if bool(jnp.all(jnp.linalg.eigvalsh(H) < 0)):
-                delta = -jnp.linalg.solve(H, g)
-            else:  # not concave here: a gradient step scaled by the curvature's size
-                delta = g / jnp.maximum(jnp.abs(jnp.diagonal(H)), 1.0)
-            delta = jnp.clip(delta, -1.5, 1.5)
-            for _ in range(6):
-                if bool(_value(params + delta, *args) >= f):
-                    break
-                delta = delta / 2
-            params = params + delta
-            # Converged when Gamma has settled; a vanishing noise may still creep to zero.
-            if float(jnp.max(jnp.abs(delta[: len(vel)]))) < tol:
-                break
-    g, H = _derivatives(params, *args)
+        params = _newton(params, (lin, y, r, vel), max_iter, tol, d)
+    g, H = _derivatives(params, lin, y, r, vel)
     gamma, noise = _unpack(params, r, vel)
     theta = jnp.exp(params)
     # Information in natural units, d2l/dp2 = (H_log - diag(g_log)) / (p p^T).
     info = -(H - jnp.diag(g)) / (theta[:, None] * theta[None, :])
-    d = len(vel)
     I_gg, I_gs, I_ss = info[:d, :d], info[:d, d:], info[d:, d:]
-    if bool(jnp.all(jnp.linalg.eigvalsh(I_ss) > 0)):  # profile the noise out
-        I_gg = I_gg - I_gs @ jnp.linalg.solve(I_ss, I_gs.T)
+    profiled = I_gg - I_gs @ jnp.linalg.solve(I_ss, I_gs.T)  # the noise profiled out
+    I_gg = jnp.where(jnp.all(jnp.linalg.eigvalsh(I_ss) > 0), profiled, I_gg)
     return gamma, jnp.linalg.inv(I_gg), noise, lin
+
+
+def _newton(params, args, max_iter: int, tol: float, d: int):
+    """Newton steps in the logs from `params`: at most a factor e^1.5 each, halved (up to 6
+    times) while the likelihood falls; a scaled gradient step where it is not concave. Stops
+    when `Gamma` has settled (a vanishing noise may still creep to zero)."""
+
+    def iterate(carry):
+        i, p, _ = carry
+        f = _loglik(p, *args)
+        g, H = _derivatives(p, *args)
+        newton = -jnp.linalg.solve(H, g)
+        gradient = g / jnp.maximum(jnp.abs(jnp.diagonal(H)), 1.0)
+        delta = jnp.clip(jnp.where(jnp.all(jnp.linalg.eigvalsh(H) < 0), newton, gradient), -1.5, 1.5)
+        halve = lambda c: (c[0] + 1, c[1] / 2)
+        falls = lambda c: (c[0] < 6) & (_loglik(p + c[1], *args) < f)
+        _, delta = jax.lax.while_loop(falls, halve, (0, delta))
+        return i + 1, p + delta, jnp.max(jnp.abs(delta[:d]))
+
+    going = lambda c: (c[0] < max_iter) & (c[2] >= tol)
+    return jax.lax.while_loop(going, iterate, (0, params, jnp.asarray(jnp.inf, params.dtype)))[1]
 
 
 @functools.partial(jax.jit, static_argnums=4)

@@ -15,10 +15,9 @@ the level are not blurred by independent noise per level (see :func:`study_keys`
 
 Framework 2 (output-only): the drift (simulation of ``records`` Brownian-forced records per
 replicate, Kramers-Moyal statistics, sampling, summaries) is one compiled program; the
-diffusion's likelihood maximum (:func:`dtwin_jax.statespace.diffusion_mle`, a Python-driven
-Newton loop) runs once per (level, replicate), then its EM targets of every level and
-replicate are sampled in one more compiled call. That loop is the slow part on CPU (tens of
-seconds per level and replicate with 100 records).
+diffusion (likelihood maximum by :func:`dtwin_jax.statespace.diffusion_mle`, its EM targets'
+statistics) another, mapped over the (level, replicate) pairs, and its sampling a third. The
+diffusion is the slow part on CPU (~10 s per level and replicate with 100 records).
 """
 
 from __future__ import annotations
@@ -215,22 +214,43 @@ def _sample_program(keys, stats, truth, support, settings, method, pip_threshold
     return jax.tree.map(lambda a: a.reshape((L, Rp, q) + a.shape[1:]), out)
 
 
+# The pre-averaging window of the diffusion's first guess: static inside a compiled study
+# (the data-driven rule needs concrete values); Newton steps from any such start converge.
+PILOT_WINDOW = 16
+
+
 def _diffusion_stats_one(example, lib, dlib, coef, x, level, key):
     """The diffusion's EM-target statistics of one noisy ensemble, as
-    :func:`twin.update_output_only` builds them (likelihood maximum given the drift)."""
+    :func:`twin.update_output_only` builds them (likelihood maximum given the drift
+    ``coef (q, K)``, zero for unselected terms). Pure: mapped over a study's pairs."""
     nominal, dt = example.system.nominal, example.dt
     y = measurement.add_noise(key, x, level)  # the same noise as in the drift program
     s2 = kramers_moyal.noise_variance(y)
-    step = statespace.DriftStep.from_coefficients(nominal, lib, coef, dt)
-    pilot, _ = kramers_moyal.preaveraged_diffusion(nominal, y, dt, s2, step.perturbation)
+    regressed = tuple(int(i) for i in nominal.regressed_index)
+    step = statespace.DriftStep(nominal, lib, jnp.asarray(coef), regressed, dt)
+    pilot, _ = kramers_moyal.preaveraged_diffusion(nominal, y, dt, s2, step.perturbation, window=PILOT_WINDOW)
     seg = statespace.segments(y)
     gamma, gamma_cov, fitted, lin = statespace.diffusion_mle(step, seg, s2, pilot)
     vel = tuple(int(v) for v in nominal.velocity_index)
     Yg, Xg = statespace.diffusion_targets(lin, seg, fitted, gamma, vel)
-    Yg = np.asarray(Yg).reshape(-1, nominal.d)
-    Lg = np.asarray(dlib(np.asarray(Xg).reshape(-1, nominal.m)))
-    stats = targets.equation_stats(Lg, Yg)
-    return _diffusion_stats(stats, Yg, np.asarray(gamma), np.diag(np.asarray(gamma_cov)))
+    Yg = Yg.reshape(-1, nominal.d)
+    stats = targets.equation_stats(dlib(Xg.reshape(-1, nominal.m)), Yg)
+    jax.debug.callback(_tick, gamma)
+    return _diffusion_stats(stats, Yg, gamma, jnp.diagonal(gamma_cov))
+
+
+@eqx.filter_jit
+def _diffusion_program(example, lib, dlib, levels, coef, x, noise_keys, batch_size):
+    """Diffusion statistics of every (level, replicate) pair, ``coef (L, Rp, q, K)``, ensembles
+    ``x (Rp, records, N, m)``: one compiled program, lax.map over the pairs in batches."""
+    L, Rp = coef.shape[:2]
+    lv = jnp.repeat(levels, Rp)
+    rep = jnp.tile(jnp.arange(Rp), L)
+    stats = jax.lax.map(
+        lambda a: _diffusion_stats_one(example, lib, dlib, coef[a[0] // Rp, a[1]], x[a[1]], a[2], noise_keys[a[1]]),
+        (jnp.arange(L * Rp), rep, lv), batch_size=batch_size,
+    )
+    return jax.tree.map(lambda a: a.reshape((L, Rp) + a.shape[1:]), stats)
 
 
 # --- results --------------------------------------------------------------------------------
@@ -424,28 +444,25 @@ def noise_sweep(
                          timings={"drift_seconds": seconds})
     if framework == "output-only" and diffusion:
         result.diffusion = _diffusion_sweep(ex, lib, levels, keys, x, out, settings, method, pip_threshold,
-                                            progress, records)
+                                            progress, records, batch_size)
         result.timings["diffusion_seconds"] = result.diffusion.seconds
         result.seconds = time.perf_counter() - start
     return result
 
 
-def _diffusion_sweep(ex, lib, levels, keys, x, drift, settings, method, pip_threshold, progress, records):
-    """Framework 2's diffusion at every level and replicate: the likelihood maximum per pair
-    (Python loop), then one compiled sampler call over all pairs."""
+def _diffusion_sweep(ex, lib, levels, keys, x, drift, settings, method, pip_threshold, progress, records,
+                     batch_size):
+    """Framework 2's diffusion at every level and replicate: the likelihood maxima and EM
+    statistics of all pairs in one compiled program, then one compiled sampler call."""
     start = time.perf_counter()
     nominal = ex.system.nominal
     dlib = parse_library(DIFFUSION_LIBRARY, nominal.m, 0)
     _, noise_keys, _ = keys
     L, Rp = levels.size, x.shape[0]
     coef = np.where(drift.pip > pip_threshold, drift.mean, 0.0)  # (L, Rp, q, K)
-    stats = []
     with _progress(progress, L * Rp, "diffusion likelihoods"):
-        for i in range(L):
-            for r in range(Rp):
-                stats.append(_diffusion_stats_one(ex, lib, dlib, coef[i, r], x[r], levels[i], noise_keys[r]))
-                _tick(None)
-    stats = jax.tree.map(lambda *a: jnp.stack(a).reshape((L, Rp) + a[0].shape), *stats)
+        stats = _diffusion_program(ex, lib, dlib, jnp.asarray(levels), jnp.asarray(coef), x, noise_keys, batch_size)
+        stats = jax.tree.map(jnp.asarray, jax.block_until_ready(stats))
     states = tuple(nominal.state_names[i] for i in nominal.velocity_index)
     true_gamma = ex.true_diffusion()
     truth = np.array([[true_gamma[s] if n == "1" else 0.0 for n in dlib.names] for s in states])

@@ -448,9 +448,8 @@ def _diffusion_stats(stats: sampler.SuffStats, Y, gamma, gamma_var) -> sampler.S
     increments, so a constant diffusion's posterior variance is `1 / information`.
     """
     n = Y.shape[0]
-    missing = np.maximum(2.0 * gamma**2 - np.var(Y, axis=0), 0.0)
-    n_eff = 2.0 * gamma**2 / gamma_var
-    scale = jnp.asarray(n_eff / n)
+    missing = jnp.maximum(2.0 * gamma**2 - jnp.var(Y, axis=0), 0.0)
+    scale = 2.0 * gamma**2 / gamma_var / n  # n_eff / n
     return sampler.SuffStats(
         stats.gram * scale[:, None, None],
         stats.xty * scale[:, None],
