@@ -14,9 +14,9 @@ from dtwin_jax.errors import DataError  # noqa: E402
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, parse_library  # noqa: E402
 from dtwin_jax.measurement import measure  # noqa: E402
 from dtwin_jax.systems import LinearSecondOrder, PerturbedSystem, simulate  # noqa: E402
+from dtwin_jax.predict import UpdatedTwin, posterior_twins, predict, simulation_error  # noqa: E402
 from dtwin_jax.twin import (  # noqa: E402
     SamplerSettings,
-    UpdatedTwin,
     UpdateResult,
     update_input_output,
     update_output_only,
@@ -33,8 +33,11 @@ __all__ = [
     "UpdatedTwin",
     "measure",
     "parse_library",
+    "posterior_twins",
+    "predict",
     "sampler",
     "simulate",
+    "simulation_error",
     "systems",
     "update_input_output",
     "update_output_only",

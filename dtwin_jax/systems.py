@@ -221,6 +221,9 @@ def _sde_drift(s, y, system):
 
 
 def _sde_diffusion(s, y, system):
+    # An updated twin carries its discovered, possibly state-dependent, diffusion.
+    if hasattr(system, "diffusion"):
+        return system.diffusion(y)
     return diffusion_matrix(system_nominal(system))
 
 
@@ -259,9 +262,11 @@ def simulate_sde(
     terms = diffrax.MultiTerm(
         diffrax.ODETerm(_sde_drift), diffrax.ControlTerm(_sde_diffusion, brownian)
     )
+    # ShARK needs additive noise; a twin's state-dependent diffusion takes GeneralShARK.
+    additive = getattr(system, "additive_noise", True)
     sol = diffrax.diffeqsolve(
         terms,
-        diffrax.ShARK(),
+        diffrax.ShARK() if additive else diffrax.GeneralShARK(),
         t0=t[0],
         t1=t[-1],
         dt0=None,

@@ -28,6 +28,7 @@ from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_lib
 from dtwin_jax.denoise import auto_half_width, kinematic_smoother, savgol_states
 from dtwin_jax.measurement import smooth
 from dtwin_jax.posterior import EquationPosterior
+from dtwin_jax.predict import UpdatedTwin
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.checks import residual_checks
 from dtwin_jax.targets import equation_stats, input_output_targets, smoothed_input_output_stats
@@ -62,29 +63,6 @@ class SamplerSettings:
     max_active: int | None = None
 
 
-@dataclass(frozen=True)
-class UpdatedTwin:
-    """Nominal model plus discovered drift terms: ``dx/dt = f(x, u) + Theta^T L(x, u)``.
-
-    ``coefficients (len(regressed), K)`` are posterior means of the selected terms (zero
-    elsewhere) for the states ``regressed`` (indices into the state vector).
-    """
-
-    nominal: LinearSecondOrder
-    library: Library
-    regressed: tuple[int, ...]
-    coefficients: np.ndarray
-
-    def perturbation(self, x, u):
-        """Discovered extra rate ``h (m,)`` at one sample ``x (m,)``, ``u (n,)``."""
-        h = jnp.asarray(self.coefficients) @ self.library.eval_single(x, u)
-        return jnp.zeros(self.nominal.m, h.dtype).at[jnp.asarray(self.regressed)].set(h)
-
-    def rate(self, x, u):
-        """Updated state rate at one sample ``x (m,)``, ``u (n,)``."""
-        return self.nominal.rate(x, u) + self.perturbation(x, u)
-
-
 @dataclass
 class UpdateResult:
     """Posteriors of every regressed equation, the updated twin and run diagnostics."""
@@ -111,10 +89,20 @@ class UpdateResult:
 
     @property
     def twin(self) -> UpdatedTwin:
+        """The updated model at the posterior means of the selected terms (with the
+        discovered diffusion for an output-only update); :func:`predict.posterior_twins`
+        gives posterior draws of it."""
         drift = [e for e in self.equations if e.kind == "drift"]
         index = tuple(self.state_names.index(e.state) for e in drift)
         coef = np.stack([e.coefficients for e in drift]) if drift else np.zeros((0, self.library.K))
-        return UpdatedTwin(self.nominal, self.library, index, coef)
+        diffusion = [e for e in self.equations if e.kind == "diffusion"]
+        if not diffusion:
+            return UpdatedTwin(self.nominal, self.library, index, jnp.asarray(coef))
+        dlib = parse_library(self.preprocessing["diffusion_library"], self.nominal.m, 0)
+        dcoef = np.stack([e.coefficients for e in diffusion])
+        used = np.any(dcoef != 0, axis=0)  # a constant-only diffusion stays additive noise
+        return UpdatedTwin(self.nominal, self.library, index, jnp.asarray(coef), dlib.subset(used),
+                           jnp.asarray(dcoef[:, used]))
 
     def diagnostics(self) -> dict:
         rhat = np.concatenate([e.rhat() for e in self.equations] + [np.zeros(0)])

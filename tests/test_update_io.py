@@ -12,6 +12,7 @@ import dtwin_jax  # noqa: F401
 from dtwin_jax import systems
 from dtwin_jax.measurement import measure
 from dtwin_jax.twin import SamplerSettings, update_input_output
+from predictive import check_input_output_prediction
 
 SETTINGS = SamplerSettings(num_chains=2, num_draws=1000, num_burnin=500)
 
@@ -46,6 +47,7 @@ def test_example1_five_percent():
     _check(ex, res, rel_tol=0.01)
     diag = res.diagnostics()
     assert diag["rhat_max"] < 1.01 and diag["ess_bulk_min"] > 400
+    check_input_output_prediction(ex, res)  # measured: 0.2% (nominal 150%)
 
 
 def test_example3_five_percent_identifiable_degradation_terms():

@@ -1,0 +1,161 @@
+"""The updated twin as a simulator, and its posterior predictive (paper Section 5.6).
+
+:class:`UpdatedTwin` is the nominal model plus the discovered drift terms (and, for an
+output-only twin, the discovered diffusion): an equinox module, so its coefficient arrays
+may carry a leading axis of posterior draws and the twin vmaps over them.
+:func:`posterior_twins` stacks draws of an update's posterior; :func:`predict` simulates
+them (an ODE under a given input, or an SDE under Brownian forcing, both with diffrax
+through :mod:`dtwin_jax.systems`) and returns the mean and the 2.5% and 97.5% quantiles of
+every state.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dtwin_jax import systems
+from dtwin_jax.errors import DataError
+from dtwin_jax.library import Library, parse_library
+from dtwin_jax.systems import LinearSecondOrder
+
+__all__ = ["UpdatedTwin", "posterior_twins", "predict", "simulation_error"]
+
+
+class UpdatedTwin(eqx.Module):
+    """Nominal model plus discovered terms: `dx/dt = f(x, u) + S Theta L(x, u)`, and for an
+    output-only twin `dx = ... dt + G(x) dB` with the discovered diffusion.
+
+    `coefficients (q, K)` of `library` for the states `regressed` (indices into the state);
+    `diffusion_coefficients (d, Kd)` of `diffusion_library` give `Gamma_vv(x)` (velocity^2/s)
+    of every velocity, or are None for an input-output twin. Arrays may carry a leading
+    batch axis (posterior draws): vmap over it with `eqx.filter_vmap`.
+    """
+
+    nominal: LinearSecondOrder
+    library: Library = eqx.field(static=True)
+    regressed: tuple[int, ...] = eqx.field(static=True)
+    coefficients: jax.Array
+    diffusion_library: Library | None = eqx.field(static=True, default=None)
+    diffusion_coefficients: jax.Array | None = None
+
+    def perturbation(self, x, u):
+        """Discovered extra rate `(m,)` at one sample `x (m,)`, `u (n,)`."""
+        h = jnp.asarray(self.coefficients) @ self.library.eval_single(x, u)
+        return jnp.zeros(self.nominal.m, h.dtype).at[jnp.asarray(self.regressed)].set(h)
+
+    def rate(self, x, u):
+        """Updated state rate `(m,)` at one sample `x (m,)`, `u (n,)`."""
+        return self.nominal.rate(x, u) + self.perturbation(x, u)
+
+    @property
+    def stochastic(self) -> bool:
+        return self.diffusion_coefficients is not None
+
+    @property
+    def additive_noise(self) -> bool:
+        """True when the diffusion has no state-dependent term (ShARK applies)."""
+        return self.diffusion_library is None or set(self.diffusion_library.names) <= {"1"}
+
+    def diffusion_variance(self, x):
+        """Discovered `Gamma_vv(x) (d,)` of every velocity at `x (m,)`, floored at zero."""
+        gamma = jnp.asarray(self.diffusion_coefficients) @ self.diffusion_library.eval_single(x)
+        return jnp.maximum(gamma, 0.0)
+
+    def diffusion(self, x):
+        """`G(x) (m, n)` of the SDE: the nominal force path `M^-1 B` with each velocity row
+        rescaled so that `(G G^T)_vv = Gamma_vv(x)`.
+
+        The unknown force keeps the nominal model's input structure (so one Brownian path
+        drives the truth and the twin alike); a velocity the nominal `B` does not force
+        gets no noise.
+        """
+        G = systems.diffusion_matrix(self.nominal)
+        vel = jnp.asarray(self.nominal.velocity_index)
+        nominal_var = jnp.sum(G[vel] ** 2, axis=1)
+        scale = jnp.where(nominal_var > 0, jnp.sqrt(self.diffusion_variance(x) / jnp.where(nominal_var > 0, nominal_var, 1.0)), 0.0)
+        return G * jnp.ones(G.shape[0], G.dtype).at[vel].set(scale)[:, None]
+
+
+def _draw_index(result, num_draws: int, key) -> tuple[np.ndarray, np.ndarray]:
+    chains, draws = result.equations[0].theta.shape[:2]
+    flat = jax.random.choice(key, chains * draws, (num_draws,), replace=num_draws > chains * draws)
+    flat = np.asarray(flat)
+    return flat // draws, flat % draws
+
+
+def posterior_twins(result, num_draws: int = 100, key=None) -> UpdatedTwin:
+    """`num_draws` joint posterior draws of an update's twin, stacked on a leading axis.
+
+    Every draw takes all equations' coefficients from one (chain, draw) of the Gibbs run:
+    the twin's parameter uncertainty, inclusion included (an excluded term is zero).
+    """
+    if num_draws < 1:
+        raise DataError(f"num_draws must be positive, got {num_draws}")
+    key = jax.random.key(0) if key is None else key
+    c, k = _draw_index(result, num_draws, key)
+    drift = [e for e in result.equations if e.kind == "drift"]
+    diffusion = [e for e in result.equations if e.kind == "diffusion"]
+    names = result.nominal.state_names
+    coef = np.stack([e.theta[c, k] for e in drift], axis=1)  # (S, q, K)
+    twin = result.twin
+    if not diffusion:
+        return eqx.tree_at(lambda t: t.coefficients, twin, jnp.asarray(coef))
+    dcoef = np.stack([e.theta[c, k] for e in diffusion], axis=1)  # (S, d, Kd)
+    assert [e.state for e in diffusion] == [names[v] for v in result.nominal.velocity_index]
+    # Only the terms some draw uses: a constant-only diffusion keeps additive noise.
+    used = np.any(dcoef != 0, axis=(0, 1))
+    dlib = parse_library(result.preprocessing["diffusion_library"], result.nominal.m, 0).subset(used)
+    return UpdatedTwin(twin.nominal, twin.library, twin.regressed, jnp.asarray(coef), dlib, jnp.asarray(dcoef[..., used]))
+
+
+def _one(twins: UpdatedTwin, coef, dcoef) -> UpdatedTwin:
+    """The twin of one draw: `twins` with its batched coefficient arrays replaced."""
+    if dcoef is None:
+        return eqx.tree_at(lambda t: t.coefficients, twins, coef)
+    return eqx.tree_at(lambda t: (t.coefficients, t.diffusion_coefficients), twins, (coef, dcoef))
+
+
+@eqx.filter_jit
+def _paths(twins: UpdatedTwin, x0, t, u, keys):
+    if twins.stochastic:
+        run = lambda c, dc, k: systems.simulate_sde(_one(twins, c, dc), x0, t, k)
+        return jax.vmap(run)(twins.coefficients, twins.diffusion_coefficients, keys)
+    run = lambda c: systems.simulate(_one(twins, c, None), x0, t, u, rtol=1e-8, atol=1e-10)[0]
+    return jax.vmap(run)(twins.coefficients)
+
+
+def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = False) -> dict:
+    """Posterior-predictive simulation of stacked twins (:func:`posterior_twins`).
+
+    `x0 (m,)`, `t (N,)` s; `u (N, n)` the input of an input-output twin (held over each
+    step). An output-only twin is driven by Brownian forcing: an independent path per draw
+    from `key` (the band holds the process noise too), or with `shared_path` one path for
+    all (the band holds the parameter uncertainty only; the truth driven by
+    `systems.simulate_sde(..., key)` sees the same path). Returns `t`, `mean`, `lower`,
+    `upper` (2.5% and 97.5% quantiles) `(N, m)`, and the `paths (S, N, m)`.
+    """
+    t = jnp.asarray(t, dtype=float)
+    x0 = jnp.asarray(x0, dtype=float)
+    S = jnp.shape(twins.coefficients)[0]
+    if twins.stochastic:
+        key = jax.random.key(0) if key is None else key
+        keys = jnp.stack([key] * S) if shared_path else jax.random.split(key, S)
+        paths = _paths(twins, x0, t, None, keys)
+    else:
+        if u is None:
+            raise DataError("an input-output twin needs the input u (N, n) to predict")
+        u = jnp.asarray(u, dtype=float)
+        paths = _paths(twins, x0, t, u.reshape(t.shape[0], -1), None)
+    lower, upper = jnp.quantile(paths, jnp.array([0.025, 0.975]), axis=0)
+    return {"t": t, "mean": paths.mean(axis=0), "lower": lower, "upper": upper, "paths": paths}
+
+
+def simulation_error(predicted, measured) -> dict:
+    """Free-run simulation errors of `predicted (N, m)` against `measured (N, m)` per state:
+    RMS error (the signal's units) and normalised RMS error (RMS error / std of measured)."""
+    predicted, measured = np.asarray(predicted), np.asarray(measured)
+    rms = np.sqrt(np.mean((predicted - measured) ** 2, axis=0))
+    return {"rmse": rms, "nrmse": rms / np.std(measured, axis=0)}

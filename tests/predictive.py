@@ -1,0 +1,46 @@
+"""Posterior-predictive checks of an updated twin (dtwin_jax.predict), called from the tests
+that already update example 1 in each framework (one update, not two).
+
+10 s of excitation never seen in training; normalised RMSE = RMS error / std of the truth.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dtwin_jax import posterior_twins, predict, simulate, simulation_error, systems
+
+
+def check_input_output_prediction(ex, result, tol=0.05):
+    new = systems.simulate_example(ex, jax.random.key(7), duration=10.0)
+    twins = posterior_twins(result, 100, jax.random.key(3))
+    assert twins.coefficients.shape == (100, 1, len(result.library.names))
+    pred = predict(twins, ex.x0, new["t"], new["u"])
+    twin_err = simulation_error(pred["mean"], new["x"])["nrmse"]
+    nominal_err = simulation_error(simulate(ex.system.nominal, ex.x0, new["t"], new["u"])[0], new["x"])["nrmse"]
+    print("normalised RMSE on a new 10 s input, twin", twin_err, "nominal", nominal_err)
+    assert np.all(twin_err < tol) and np.all(nominal_err > 1.0)
+    assert np.all(pred["lower"] <= pred["upper"])  # (a skewed spread may put the mean outside)
+    # The twin at the posterior mean is a pytree that the package's simulator jits.
+    x, _ = simulate(result.twin, ex.x0, new["t"][:2000], new["u"][:2000])
+    assert np.allclose(x, pred["mean"][:2000], atol=0.05 * float(jnp.std(new["x"][:2000, 0])))
+
+
+def check_output_only_prediction(ex, result, tol=0.10):
+    """The truth's own Brownian path drives the twins (`shared_path`): the mean within
+    `tol`; then independent paths: the truth inside the 95% band 90-99% of the time."""
+    twins = posterior_twins(result, 100, jax.random.key(3))
+    assert twins.stochastic
+    t = jnp.arange(10001) * ex.dt
+    key = jax.random.key(7)
+    truth = systems.simulate_sde(ex.system, ex.x0, t, key)
+    pred = predict(twins, ex.x0, t, key=key, shared_path=True)
+    twin_err = simulation_error(pred["mean"], truth)["nrmse"]
+    nominal_err = simulation_error(systems.simulate_sde(ex.system.nominal, ex.x0, t, key), truth)["nrmse"]
+    band = predict(twins, ex.x0, t, key=jax.random.key(11))
+    other = np.asarray(systems.simulate_sde(ex.system, ex.x0, t, jax.random.key(12)))
+    inside = np.mean((other >= np.asarray(band["lower"])) & (other <= np.asarray(band["upper"])), axis=0)
+    print("normalised RMSE on the truth's path, twin", twin_err, "nominal", nominal_err,
+          "; independent paths inside the 95% band", inside)
+    assert np.all(twin_err < tol) and np.all(nominal_err > 1.0)
+    assert np.all((inside > 0.90) & (inside < 0.99))
