@@ -13,6 +13,8 @@ from dtwin_jax import SamplerSettings, measure, systems, update_input_output, up
 from dtwin_jax.measurement import add_noise
 from dtwin_jax.library import parse_library
 
+pytestmark = pytest.mark.xdist_group("zoo")  # one worker: the fixtures once
+
 SEED = 0  # members SEED .. SEED + len(FAMILIES) - 1: one of each family
 
 
