@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 import dtwin_jax  # noqa: F401  (float64)
-from dtwin_jax import SamplerSettings, measure, systems, update_input_output, update_output_only, zoo
-from dtwin_jax.measurement import add_noise
+from dtwin_jax import SamplerSettings, measure, systems, update_input_output, zoo
 from dtwin_jax.library import parse_library
 
 pytestmark = pytest.mark.xdist_group("zoo")  # one worker: the fixtures once
@@ -154,25 +153,3 @@ def test_input_output_update_of_a_hardening_member(members):
     assert eq.selected[k], result.summary()
     assert abs(eq.mean[k] / truth - 1) < 0.02, (result.summary(), truth)
 
-
-def test_output_only_update_of_a_coulomb_member(members):
-    """Output-only, 100 records, one noise level per sensor (as `benchmarks/zoo.py`):
-    friction's `sign(x2)` alone in the drift, the constant alone in the diffusion, both
-    within a few percent."""
-    m = members[zoo.FAMILIES.index("coulomb")]
-    ex = m.example
-    sim = systems.simulate_example_sde(ex, jax.random.key(10), num_records=100)
-    x = add_noise(jax.random.key(11), sim["x"], m.noise_level, per_record=False)
-    result = update_output_only(
-        ex.system.nominal, sim["t"], x, library=ex.library_output_only,
-        settings=SamplerSettings(num_chains=2, num_draws=1000, num_burnin=500), seed=0,
-    )
-    print(result.summary())
-    drift, diffusion = result.equations
-    ((term, truth),) = ex.true_terms["x2"].items()
-    assert [drift.names[k] for k in np.flatnonzero(drift.selected)] == [term]
-    k = drift.names.index(term)
-    assert abs(drift.mean[k] / truth - 1) < 0.05
-    assert [diffusion.names[k] for k in np.flatnonzero(diffusion.selected)] == ["1"]
-    gamma = diffusion.mean[diffusion.names.index("1")]
-    assert abs(gamma / ex.true_diffusion()["x2"] - 1) < 0.03
