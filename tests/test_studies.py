@@ -19,9 +19,6 @@ LEVELS = [0.0, 0.05, 0.45]
 SETTINGS = SamplerSettings(num_chains=2, num_draws=300, num_burnin=150)
 
 
-pytestmark = pytest.mark.xdist_group("studies")  # one worker: the sweep fixture once
-
-
 @pytest.fixture(scope="module")
 def sweep():
     return studies.noise_sweep("example1", LEVELS, replicates=2, settings=SETTINGS, seed=0, progress=False)

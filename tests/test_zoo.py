@@ -12,8 +12,6 @@ import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax import SamplerSettings, measure, systems, update_input_output, zoo
 from dtwin_jax.library import parse_library
 
-pytestmark = pytest.mark.xdist_group("zoo")  # one worker: the fixtures once
-
 SEED = 0  # members SEED .. SEED + len(FAMILIES) - 1: one of each family
 
 
