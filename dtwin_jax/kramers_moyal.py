@@ -178,37 +178,51 @@ def drift_statistics(
     K = lib.K
     poly, exponents, pairs, pair_index = _monomials(lib)
     corrected = jnp.ones(K) if smoothing is None else 1.0 - _smoothed_columns(lib, smoothing)
-    gram = raw_gram = jnp.zeros((K, K))
-    xty = raw_xty = jnp.zeros((reg.size, K))
-    for start in range(0, X.shape[0], chunk):
-        sl = slice(start, start + chunk)
-        d1, d2 = _derivatives(lib, X[sl], smoothing)
-        first, second = ahead_fn(X[sl])
-        L = lib(X[sl], None, smoothing)
+
+    def chunk_sums(Xc, Yc, w):
+        """Moment sums of one chunk of samples `Xc (c, m)`, `Yc (c, r)`, weights `w (c,)`
+        (0 for padding): every term is a product of two per-sample factors."""
+        d1, d2 = _derivatives(lib, Xc, smoothing)
+        first, second = ahead_fn(Xc)
+        L = lib(Xc, None, smoothing)
         Lt = L + 1.5 * dt * first + (7.0 / 6.0) * dt**2 * second
         # E[L_a L_b (X + eps)] = L_a L_b + 1/2 sum_j s_j^2 (d_j^2 L_a L_b + 2 d_j L_a d_j L_b
         # + L_a d_j^2 L_b): subtract the noise's part, estimated at the noisy states.
         # A smoothed column's mean shift is already undone by its smaller smoothing (no W2);
         # its noise still scatters it (D1, from the smoothed column's derivatives).
         W2 = jnp.einsum("j,jpk->pk", s2, d2) * corrected
-        D1 = (jnp.sqrt(s2)[:, None, None] * d1).reshape(-1, K)
-        cross = Lt.T @ W2
-        plain = Lt.T @ Lt
-        raw_gram += plain
-        gram += plain - 0.5 * (cross + cross.T) - D1.T @ D1
-        raw_xty += (Lt.T @ Y[sl]).T
-        xty += ((Lt - 0.5 * W2).T @ Y[sl]).T
+        wLt, wW2 = w[:, None] * Lt, w[:, None] * W2
+        D1 = (jnp.sqrt(s2)[:, None, None] * d1 * jnp.sqrt(w)[None, :, None]).reshape(-1, K)
+        cross = wLt.T @ W2
+        plain = wLt.T @ Lt
+        gram = plain - 0.5 * (cross + cross.T) - D1.T @ D1
+        raw_xty = (wLt.T @ Yc).T
+        xty = ((wLt - 0.5 * wW2).T @ Yc).T
         if poly.size:
             # Monomials and their products: exact unbiased moments (Hermite), in place of the
             # second-order ones of the L L part (x^5 at 20% noise needs the 4th-order terms).
-            T = _hermite_table(X[sl], s2, int(exponents.sum(axis=1).max()) * 2)
+            T = _hermite_table(Xc, s2, int(exponents.sum(axis=1).max()) * 2)
             Lp, Wp = L[:, poly], W2[:, poly]
             Dp = D1.reshape(-1, L.shape[0], K)[:, :, poly].reshape(-1, poly.size)
-            second_order = Lp.T @ Lp - 0.5 * (Lp.T @ Wp + Wp.T @ Lp) - Dp.T @ Dp
-            exact = _hermite_sums(T, pairs)[pair_index]
+            wLp, wWp = w[:, None] * Lp, w[:, None] * Wp
+            second_order = wLp.T @ Lp - 0.5 * (wLp.T @ Wp + wWp.T @ Lp) - Dp.T @ Dp
+            exact = _hermite_sums(T, pairs, w)[pair_index]
             gram = gram.at[np.ix_(poly, poly)].add(exact - second_order)
             unbiased = _hermite_products(T, exponents)
-            xty = xty.at[:, poly].add(((unbiased - (Lp - 0.5 * Wp)).T @ Y[sl]).T)
+            xty = xty.at[:, poly].add(((w[:, None] * (unbiased - (Lp - 0.5 * Wp))).T @ Yc).T)
+        return gram, plain, xty, raw_xty
+
+    # One compiled chunk body under a scan (a Python loop would compile it once per chunk).
+    P = X.shape[0]
+    size = min(chunk, P)
+    count = -(-P // size)
+    pad = count * size - P
+    w = jnp.concatenate([jnp.ones(P, X.dtype), jnp.zeros(pad, X.dtype)]).reshape(count, size)
+    Xp = jnp.concatenate([X, jnp.broadcast_to(X[:1], (pad, m))]).reshape(count, size, m)
+    Yp = jnp.concatenate([Y, jnp.zeros((pad, reg.size), Y.dtype)]).reshape(count, size, reg.size)
+    add = lambda acc, c: (jax.tree.map(jnp.add, acc, chunk_sums(*c)), None)
+    zeros = (jnp.zeros((K, K)), jnp.zeros((K, K)), jnp.zeros((reg.size, K)), jnp.zeros((reg.size, K)))
+    (gram, raw_gram, xty, raw_xty), _ = jax.lax.scan(add, zeros, (Xp, Yp, w))
     # A second-order correction only holds while it is small: exp(-x2) of a velocity with
     # noise std ~1 needs exp(2 s^2), not 1 + 2 s^2. Such columns keep their raw moments;
     # monomials' moments are exact at any noise level.
@@ -263,10 +277,11 @@ def _hermite_products(T, exponents):
     return jnp.prod(T[:, np.arange(m)[None, :], exponents], axis=-1)
 
 
-def _hermite_sums(T, exponents, block: int = 256):
-    """`(G,)`: the sum over samples of :func:`_hermite_products`, in blocks of monomials."""
+def _hermite_sums(T, exponents, weights, block: int = 256):
+    """`(G,)`: the `weights (P,)`-weighted sum over samples of :func:`_hermite_products`, in
+    blocks of monomials."""
     return jnp.concatenate([
-        jnp.sum(_hermite_products(T, exponents[i : i + block]), axis=0)
+        weights @ _hermite_products(T, exponents[i : i + block])
         for i in range(0, exponents.shape[0], block)
     ])
 
