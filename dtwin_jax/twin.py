@@ -446,13 +446,6 @@ def _diffusion_stats(stats: sampler.SuffStats, Y, gamma, gamma_var) -> sampler.S
     )
 
 
-def _leading_rows(x, rows: int = 20000):
-    """The first ``~rows`` samples of records ``x (R, N, m)``: whole records of an ensemble,
-    the start of one long record."""
-    R, N, _ = x.shape
-    return x[: max(1, rows // N)] if R > 1 else x[:, : max(rows, 3)]
-
-
 _FIRST_PASS = dict(num_chains=1, num_draws=300, num_burnin=300)
 
 
@@ -461,34 +454,43 @@ def output_only_drift_stats(nominal: LinearSecondOrder, lib: Library, x, dt, noi
     """Kramers-Moyal drift statistics of records ``x (R, N, m)`` (batched over the regressed
     states), with the regressors moved along the model's drift (two passes).
 
-    The first pass moves them along the nominal model only, on the first ~20000 samples; a
-    short sampler run gives the selected terms (PIP > 0.5) and their means, and the second
-    pass, on all samples, moves the regressors along the nominal model plus that estimate
-    (its error enters only the O(dt) shift). A greedy first estimate is not enough: on
-    example 2's 256 terms it adds fifth-degree terms whose rough flow spoils the shift.
-    Pure and jittable (``dt`` static through the shapes; ``key`` for the first pass).
+    The first pass moves them along the nominal model only; a short sampler run gives the
+    selected terms (PIP > 0.5) and their means, and the second pass moves the regressors
+    along the nominal model plus that estimate (its error enters only the O(dt) shift). A
+    greedy first estimate is not enough: on example 2's 256 terms it adds fifth-degree terms
+    whose rough flow spoils the shift. Both passes are one compiled loop body (statistics,
+    then the short run, whose estimate the second pass's own run leaves unused).
+    Pure and jittable (``dt`` static through the shapes; ``key`` for the short runs).
     Returns ``(stats, margin (q,))``, ``margin`` the :func:`correction_margin` of the
     corrected Gram matrices before their eigenvalues are floored.
     """
-    first = kramers_moyal.drift_statistics(nominal, lib, _leading_rows(x), dt, noise_var)
-    first = first._replace(gram=_nearest_pd(first.gram))
-    keys = jax.random.split(key, first.n.shape[0])
-    trace = jax.vmap(lambda k, st: sampler.sample(k, st, **_FIRST_PASS))(keys, first)
-    included = trace.gamma.sum(axis=(1, 2))  # (q, K)
-    chosen = included > 0.5 * trace.gamma.shape[1] * trace.gamma.shape[2]
-    coef = jnp.where(chosen, trace.theta.sum(axis=(1, 2)) / jnp.maximum(included, 1), 0.0)
     regressed = jnp.asarray(nominal.regressed_index)
-    gamma = brownian_variance(nominal, dt, noise_var, trace.sigma2.mean(axis=(1, 2)))
-    # Gamma 1.5 dt: the step k+1 -> k+2 seen from sample k; the noise's own smoothing is s^2.
     vel = jnp.asarray(nominal.velocity_index)
-    c = jnp.maximum(1.5 * dt * gamma - jnp.asarray(noise_var)[vel], 0.0)
-    smoothing = jnp.zeros(nominal.m).at[vel].set(c)
+    q = regressed.size
 
-    def perturbation(z):
-        return jnp.zeros(z.shape[-1], z.dtype).at[regressed].set(coef @ lib.eval_single(z, None, smoothing))
+    def one_pass(carry, key):
+        coef, smoothing, _, _ = carry
 
-    st = kramers_moyal.drift_statistics(nominal, lib, x, dt, noise_var, perturbation, smoothing=smoothing)
-    return st._replace(gram=_nearest_pd(st.gram)), correction_margin(st.gram)
+        def perturbation(z):
+            return jnp.zeros(z.shape[-1], z.dtype).at[regressed].set(coef @ lib.eval_single(z, None, smoothing))
+
+        st = kramers_moyal.drift_statistics(nominal, lib, x, dt, noise_var, perturbation, smoothing=smoothing)
+        margin = correction_margin(st.gram)
+        st = st._replace(gram=_nearest_pd(st.gram))
+        trace = jax.vmap(lambda k, s: sampler.sample(k, s, **_FIRST_PASS))(jax.random.split(key, q), st)
+        included = trace.gamma.sum(axis=(1, 2))  # (q, K)
+        chosen = included > 0.5 * trace.gamma.shape[1] * trace.gamma.shape[2]
+        coef = jnp.where(chosen, trace.theta.sum(axis=(1, 2)) / jnp.maximum(included, 1), 0.0)
+        gamma = brownian_variance(nominal, dt, noise_var, trace.sigma2.mean(axis=(1, 2)))
+        # Gamma 1.5 dt: the step k+1 -> k+2 seen from sample k; the noise's own smoothing is s^2.
+        c = jnp.maximum(1.5 * dt * gamma - jnp.asarray(noise_var)[vel], 0.0)
+        return (coef, jnp.zeros(nominal.m).at[vel].set(c), st, margin), None
+
+    K = lib.K
+    blank = sampler.SuffStats(jnp.zeros((q, K, K)), jnp.zeros((q, K)), jnp.zeros(q), jnp.zeros(q))
+    carry = (jnp.zeros((q, K)), jnp.zeros(nominal.m), blank, jnp.zeros(q))
+    (_, _, st, margin), _ = jax.lax.scan(one_pass, carry, jax.random.split(key, 2))
+    return st, margin
 
 
 # Example 1 (100 records): -0.003 at 14% noise (support always right), -0.012 at 18% (3 of 4),
