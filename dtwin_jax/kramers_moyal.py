@@ -140,6 +140,7 @@ def drift_statistics(
     *,
     smoothing=None,
     chunk: int = 20000,
+    rows=None,
 ) -> sampler.SuffStats:
     """Noise-corrected sufficient statistics of every regressed drift equation.
 
@@ -160,6 +161,8 @@ def drift_statistics(
     beside spurious `x2`, `x2**3`). Pass `Gamma tau - s^2` to also undo the measurement
     noise's own smoothing; those columns then get no correction of their mean, only of their
     scatter.
+    `rows` (optional, may be traced): use only the first `rows` samples (of the `R (N - 2)`
+    in record order); chunks past them are skipped, not computed.
     Returns `SuffStats` batched over the `r` regressed states (see the module docstring).
     """
     x = jnp.asarray(x)
@@ -212,17 +215,22 @@ def drift_statistics(
             xty = xty.at[:, poly].add(((w[:, None] * (unbiased - (Lp - 0.5 * Wp))).T @ Yc).T)
         return gram, plain, xty, raw_xty
 
-    # One compiled chunk body under a scan (a Python loop would compile it once per chunk).
+    # One compiled chunk body in a loop (a Python loop would compile it once per chunk); the
+    # loop's length is dynamic, so a pass over the leading rows shares the program.
     P = X.shape[0]
     size = min(chunk, P)
     count = -(-P // size)
     pad = count * size - P
-    w = jnp.concatenate([jnp.ones(P, X.dtype), jnp.zeros(pad, X.dtype)]).reshape(count, size)
+    used = P if rows is None else jnp.minimum(rows, P)
+    w = (jnp.arange(count * size) < used).astype(X.dtype).reshape(count, size)
     Xp = jnp.concatenate([X, jnp.broadcast_to(X[:1], (pad, m))]).reshape(count, size, m)
     Yp = jnp.concatenate([Y, jnp.zeros((pad, reg.size), Y.dtype)]).reshape(count, size, reg.size)
-    add = lambda acc, c: (jax.tree.map(jnp.add, acc, chunk_sums(*c)), None)
+
+    def add(i, acc):
+        return jax.tree.map(jnp.add, acc, chunk_sums(Xp[i], Yp[i], w[i]))
+
     zeros = (jnp.zeros((K, K)), jnp.zeros((K, K)), jnp.zeros((reg.size, K)), jnp.zeros((reg.size, K)))
-    (gram, raw_gram, xty, raw_xty), _ = jax.lax.scan(add, zeros, (Xp, Yp, w))
+    gram, raw_gram, xty, raw_xty = jax.lax.fori_loop(0, -(-used // size), add, zeros)
     # A second-order correction only holds while it is small: exp(-x2) of a velocity with
     # noise std ~1 needs exp(2 s^2), not 1 + 2 s^2. Such columns keep their raw moments;
     # monomials' moments are exact at any noise level.
@@ -232,7 +240,8 @@ def drift_statistics(
     xty = jnp.where(valid[None, :], xty, raw_xty)
     q = reg.size
     return sampler.SuffStats(
-        jnp.broadcast_to(gram, (q, K, K)), xty, jnp.sum(Y * Y, axis=0), jnp.full(q, float(X.shape[0]))
+        jnp.broadcast_to(gram, (q, K, K)), xty, jnp.einsum("p,pr->r", w.reshape(-1)[:P], Y * Y),
+        jnp.full(q, 1.0) * used,
     )
 
 

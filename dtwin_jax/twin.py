@@ -447,6 +447,7 @@ def _diffusion_stats(stats: sampler.SuffStats, Y, gamma, gamma_var) -> sampler.S
 
 
 _FIRST_PASS = dict(num_chains=1, num_draws=300, num_burnin=300)
+FIRST_PASS_ROWS = 20000
 
 
 @functools.partial(jax.jit, static_argnums=(1,))
@@ -454,12 +455,13 @@ def output_only_drift_stats(nominal: LinearSecondOrder, lib: Library, x, dt, noi
     """Kramers-Moyal drift statistics of records ``x (R, N, m)`` (batched over the regressed
     states), with the regressors moved along the model's drift (two passes).
 
-    The first pass moves them along the nominal model only; a short sampler run gives the
+    The first pass moves them along the nominal model only, on the first ~20000 samples
+    (:data:`FIRST_PASS_ROWS`); a short sampler run gives the
     selected terms (PIP > 0.5) and their means, and the second pass moves the regressors
     along the nominal model plus that estimate (its error enters only the O(dt) shift). A
     greedy first estimate is not enough: on example 2's 256 terms it adds fifth-degree terms
-    whose rough flow spoils the shift. Both passes are one compiled loop body (statistics,
-    then the short run, whose estimate the second pass's own run leaves unused).
+    whose rough flow spoils the shift. The second pass uses all samples. Both passes are one
+    compiled loop body (statistics, then the short run; the second pass's run goes unused).
     Pure and jittable (``dt`` static through the shapes; ``key`` for the short runs).
     Returns ``(stats, margin (q,))``, ``margin`` the :func:`correction_margin` of the
     corrected Gram matrices before their eigenvalues are floored.
@@ -468,13 +470,19 @@ def output_only_drift_stats(nominal: LinearSecondOrder, lib: Library, x, dt, noi
     vel = jnp.asarray(nominal.velocity_index)
     q = regressed.size
 
-    def one_pass(carry, key):
+    R, N, _ = x.shape
+    leading = max(1, FIRST_PASS_ROWS // N) * (N - 2) if R > 1 else FIRST_PASS_ROWS  # whole records
+
+    def one_pass(carry, inputs):
+        key, rows = inputs
         coef, smoothing, _, _ = carry
 
         def perturbation(z):
             return jnp.zeros(z.shape[-1], z.dtype).at[regressed].set(coef @ lib.eval_single(z, None, smoothing))
 
-        st = kramers_moyal.drift_statistics(nominal, lib, x, dt, noise_var, perturbation, smoothing=smoothing)
+        st = kramers_moyal.drift_statistics(
+            nominal, lib, x, dt, noise_var, perturbation, smoothing=smoothing, rows=rows
+        )
         margin = correction_margin(st.gram)
         st = st._replace(gram=_nearest_pd(st.gram))
         trace = jax.vmap(lambda k, s: sampler.sample(k, s, **_FIRST_PASS))(jax.random.split(key, q), st)
@@ -489,7 +497,8 @@ def output_only_drift_stats(nominal: LinearSecondOrder, lib: Library, x, dt, noi
     K = lib.K
     blank = sampler.SuffStats(jnp.zeros((q, K, K)), jnp.zeros((q, K)), jnp.zeros(q), jnp.zeros(q))
     carry = (jnp.zeros((q, K)), jnp.zeros(nominal.m), blank, jnp.zeros(q))
-    (_, _, st, margin), _ = jax.lax.scan(one_pass, carry, jax.random.split(key, 2))
+    passes = (jax.random.split(key, 2), jnp.asarray([leading, R * (N - 2)]))
+    (_, _, st, margin), _ = jax.lax.scan(one_pass, carry, passes)
     return st, margin
 
 
