@@ -1,4 +1,5 @@
-"""Command line: ``dtwin-jax discover`` (formats.md), ``dtwin-jax demo`` and ``dtwin-jax sweep``."""
+"""Command line (formats.md): ``dtwin-jax discover``, ``predict`` and ``update`` (a saved twin),
+``demo`` and ``sweep``."""
 
 from __future__ import annotations
 
@@ -80,7 +81,25 @@ def _parser() -> argparse.ArgumentParser:
                    help="output-only: families for the diffusion (default poly:2)")
     d.add_argument("--out", default=None, help="result JSON path")
     d.add_argument("--plot", default=None, help="also write a PIP stem plot (PNG)")
+    d.add_argument("--save-twin", default=None, metavar="TWIN_DIR",
+                   help="also save the updated twin (posterior, nominal, library, history) to this folder")
     _add_sampler_args(d, draws=2000, burn_in=1000)
+
+    pr = sub.add_parser("predict", help="posterior-predictive simulation of a saved twin under a new input")
+    pr.add_argument("twin", metavar="TWIN_DIR", help="a folder written by discover --save-twin")
+    pr.add_argument("--input", required=True, help="NEW.npz: t (N,), x0 (m,), and u (N, n) for an input-output twin")
+    pr.add_argument("--draws", type=_positive_int, default=100, help="posterior draws simulated (default 100)")
+    pr.add_argument("--seed", type=int, default=0, help="random seed: draws and Brownian paths (default 0)")
+    pr.add_argument("--out", required=True, help="PREDICTION.npz: t, mean, lower, upper")
+
+    up = sub.add_parser("update", help="re-update a saved twin with a new measurement window")
+    up.add_argument("twin", metavar="TWIN_DIR", help="a folder written by discover --save-twin")
+    up.add_argument("data", help="the new measurement file (.npz or .csv)")
+    up.add_argument("--forget", type=float, default=1.0,
+                    help="weight of the previous data in the prior, in [0, 1] (default 1: all of it; 0: a fresh update)")
+    up.add_argument("--out-twin", default=None, metavar="DIR", help="write the updated twin here (default: replace TWIN_DIR)")
+    up.add_argument("--out", default=None, help="result JSON path")
+    _add_sampler_args(up, draws=2000, burn_in=1000)
 
     demo = sub.add_parser("demo", help="simulate a paper example, update its twin, print and save results")
     demo.add_argument("--example", choices=("example1", "example2", "example3"), default="example1")
@@ -121,38 +140,101 @@ def _check_threshold(value: float) -> None:
 
 
 def _discover(args) -> int:
-    from dtwin_jax.io import load_measurements, load_nominal, write_json
-    from dtwin_jax.twin import update_input_output, update_output_only
+    from dtwin_jax.io import load_measurements, load_nominal
 
     _check_threshold(args.pip_threshold)
     for out in (args.out, args.plot):
         if out:
             _check_writable(out)
+    if args.save_twin:
+        _check_writable(args.save_twin, folder=True)
     nominal = load_nominal(args.nominal)
     data = load_measurements(args.data)
     mode = args.mode or ("input-output" if "u" in data else "output-only")
+    result = _update(args, mode, nominal, data, library=args.library, diffusion_library=args.diffusion_library)
+    _report(args, result)
+    if args.save_twin:
+        from dtwin_jax.store import save_twin
+
+        save_twin(result, args.save_twin)
+        print(f"saved the twin to {args.save_twin}/")
+    return 0
+
+
+def _update(args, mode, nominal, data, *, library, diffusion_library=None, previous=None, forget=1.0):
+    from dtwin_jax.twin import update_input_output, update_output_only
+
+    common = dict(pip_threshold=args.pip_threshold, settings=_settings(args), seed=args.seed,
+                  progress=not args.quiet, previous=previous, forget=forget)
     if mode == "output-only":
-        result = update_output_only(
-            nominal, data["t"], data["x"], library=args.library,
-            diffusion_library=args.diffusion_library, pip_threshold=args.pip_threshold,
-            settings=_settings(args), seed=args.seed, progress=not args.quiet,
-        )
-    else:
-        if "u" not in data:
-            raise DataError(f"input-output mode needs key 'u' in '{args.data}'")
-        result = update_input_output(
-            nominal, data["t"], data["x"], data["u"], data.get("xdot"),
-            library=args.library, smoothing=args.smoothing, pip_threshold=args.pip_threshold,
-            settings=_settings(args), seed=args.seed, progress=not args.quiet,
-        )
+        return update_output_only(nominal, data["t"], data["x"], library=library,
+                                  diffusion_library=diffusion_library, **common)
+    if "u" not in data:
+        raise DataError(f"input-output mode needs key 'u' in '{args.data}'")
+    return update_input_output(nominal, data["t"], data["x"], data["u"], data.get("xdot"),
+                               library=library, smoothing=args.smoothing, **common)
+
+
+def _report(args, result) -> None:
+    from dtwin_jax.io import write_json
+
     print(result.summary())
     _print_diagnostics(result)
     if args.out:
         write_json(args.out, result.to_json())
-    if args.plot:
+    if getattr(args, "plot", None):
         from dtwin_jax.plots import plot_pip
 
         plot_pip(result, args.plot)
+
+
+def _update_saved(args) -> int:
+    """Re-update a saved twin: its posterior (statistics times --forget) is the prior."""
+    from dtwin_jax.io import load_measurements
+    from dtwin_jax.store import load_twin, save_twin
+
+    _check_threshold(args.pip_threshold)
+    if not 0.0 <= args.forget <= 1.0:
+        raise DataError(f"--forget must be in [0, 1], got {args.forget:g}")
+    target = args.out_twin or args.twin
+    _check_writable(target, folder=True)
+    if args.out:
+        _check_writable(args.out)
+    previous = load_twin(args.twin)
+    data = load_measurements(args.data)
+    if previous.mode == "input-output" and "u" not in data:
+        raise DataError(f"the twin is input-output; '{args.data}' has no key 'u'")
+    result = _update(args, previous.mode, previous.nominal, data, library=previous.library,
+                     diffusion_library=previous.preprocessing.get("diffusion_library"),
+                     previous=previous, forget=args.forget)
+    _report(args, result)
+    save_twin(result, target)
+    print(f"update {len(result.history)} of the twin saved to {target}/")
+    return 0
+
+
+def _predict(args) -> int:
+    """Posterior-predictive simulation of a saved twin: PREDICTION.npz with t, mean, lower, upper."""
+    import jax
+    import numpy as np
+
+    from dtwin_jax.io import atomic_path, load_prediction_input
+    from dtwin_jax.predict import posterior_twins, predict
+    from dtwin_jax.store import load_twin
+
+    _check_writable(args.out)
+    result = load_twin(args.twin)
+    new = load_prediction_input(args.input, result.nominal, needs_input=result.mode == "input-output")
+    key_draws, key_paths = jax.random.split(jax.random.key(args.seed))
+    twins = posterior_twins(result, args.draws, key_draws)
+    out = predict(twins, new["x0"], new["t"], new.get("u"), key=key_paths)
+    arrays = {k: np.asarray(out[k]) for k in ("t", "mean", "lower", "upper")}
+    if not all(np.all(np.isfinite(a)) for a in arrays.values()):
+        raise DataError("the prediction diverged (non-finite states): the twin is unstable under this input")
+    with atomic_path(args.out) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+    print(f"predicted {arrays['t'].size} samples from {args.draws} posterior draws; wrote {args.out}")
     return 0
 
 
@@ -310,9 +392,9 @@ def main(argv=None) -> int:
     try:
         if getattr(args, "out_dir", None):
             _check_writable(args.out_dir, folder=True)
-        if args.command == "sweep":
-            return _sweep(args)
-        return _discover(args) if args.command == "discover" else _demo(args)
+        commands = {"sweep": _sweep, "discover": _discover, "demo": _demo, "predict": _predict,
+                    "update": _update_saved}
+        return commands[args.command](args)
     except DataError as e:
         print(f"dtwin-jax: error: {e}", file=sys.stderr)
         return 2

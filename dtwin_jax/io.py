@@ -18,7 +18,7 @@ import numpy as np
 from dtwin_jax.errors import DataError
 from dtwin_jax.systems import LinearSecondOrder
 
-__all__ = ["load_nominal", "load_measurements", "write_json", "write_nominal", "atomic_path"]
+__all__ = ["load_nominal", "load_measurements", "load_prediction_input", "write_json", "write_nominal", "atomic_path"]
 
 
 def load_nominal(path) -> LinearSecondOrder:
@@ -95,6 +95,38 @@ def load_measurements(path) -> dict:
     for key, a in out.items():
         if not np.issubdtype(np.asarray(a).dtype, np.number):
             raise DataError(f"'{key}' in '{path}' is not numeric")
+    return out
+
+
+def load_prediction_input(path, nominal: LinearSecondOrder, *, needs_input: bool) -> dict:
+    """Read ``NEW.npz`` of ``dtwin-jax predict``: ``t (N,)`` increasing, ``x0 (m,)``, and
+    ``u (N, n)`` when ``needs_input`` (an input-output twin). Returns float arrays."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"input file '{path}' does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: np.asarray(z[k]) for k in z.files}
+    except (OSError, ValueError) as e:
+        raise DataError(f"input file '{path}' is not a readable .npz: {e}") from None
+    keys = ("t", "x0", "u") if needs_input else ("t", "x0")
+    for key in keys:
+        if key not in data:
+            raise DataError(f"input file '{path}' is missing key '{key}'")
+        if not np.issubdtype(data[key].dtype, np.number) or not np.all(np.isfinite(data[key])):
+            raise DataError(f"'{key}' in '{path}' must be finite numbers")
+    t, x0 = data["t"].astype(float), data["x0"].astype(float)
+    if t.ndim != 1 or t.size < 2 or np.any(np.diff(t) <= 0):
+        raise DataError(f"'t' in '{path}' must be an increasing vector of at least 2 times")
+    if x0.shape != (nominal.m,):
+        raise DataError(f"'x0' in '{path}' has shape {x0.shape}; the twin has {nominal.m} states")
+    out = {"t": t, "x0": x0}
+    if needs_input:
+        u = data["u"].astype(float)
+        u = u[:, None] if u.ndim == 1 else u
+        if u.shape != (t.size, nominal.n):
+            raise DataError(f"'u' in '{path}' has shape {data['u'].shape}; expected ({t.size}, {nominal.n})")
+        out["u"] = u
     return out
 
 

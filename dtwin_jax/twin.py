@@ -78,6 +78,11 @@ class UpdateResult:
     # Residual checks (dtwin_jax.checks.residual_checks) keyed by equation label; output-only
     # also "<state> noise correction" (the corrected Gram's definiteness, `correction_margin`).
     checks: dict = field(default_factory=dict)
+    # The sufficient statistics the sampler saw, by kind ("drift", "diffusion"), batched over
+    # equations, physical units: a re-update adds new data's to them (posterior as prior).
+    statistics: dict = field(default_factory=dict)
+    # One entry per update of this twin, oldest first (time, data size, prior, equations).
+    history: list = field(default_factory=list)
 
     @property
     def state_names(self) -> tuple[str, ...]:
@@ -158,6 +163,7 @@ class UpdateResult:
             "diagnostics": self.diagnostics(),
             "preprocessing": self.preprocessing,
             "checks": self.checks,
+            "history": self.history,
         }
 
     def summary(self) -> str:
@@ -199,6 +205,66 @@ def denoise_states(records: Records, nominal: LinearSecondOrder, smoothing="auto
     if smoothing not in ("auto", "savgol"):
         hw = min(int(smoothing), (records.t.size - 1) // 2)
     return np.asarray(savgol_states(records.x, hw)), {"method": "savitzky-golay", "order": 4, "half_width": hw}
+
+
+def _with_previous(stats: sampler.SuffStats, kind: str, previous, forget: float) -> sampler.SuffStats:
+    """``stats`` plus ``forget`` times the previous update's of the same ``kind``: for the
+    conjugate part of the model the posterior after both data windows, so the previous
+    posterior serves as the prior (``forget < 1`` discounts old data, for a system that drifts)."""
+    if previous is None:
+        return stats
+    old = previous.statistics.get(kind)
+    if old is None:
+        raise DataError(f"the previous update holds no {kind} statistics to combine with")
+    old = sampler.SuffStats(*(np.asarray(a) for a in old))
+    if old.xty.shape != np.shape(stats.xty):
+        raise DataError(
+            f"the previous update's {kind} library has shape {old.xty.shape}, this one {np.shape(stats.xty)}"
+        )
+    return sampler.SuffStats(*(jnp.asarray(a) + forget * b for a, b in zip(stats, old)))
+
+
+def _check_previous(previous, mode: str, nominal: LinearSecondOrder, lib: Library, forget: float) -> None:
+    if previous is None:
+        return
+    if not 0.0 <= forget <= 1.0:
+        raise DataError(f"forget must be in [0, 1], got {forget}")
+    if previous.mode != mode:
+        raise DataError(f"cannot re-update a {previous.mode} twin with {mode} data")
+    if previous.library.names != lib.names:
+        raise DataError(f"re-update needs the previous library '{previous.library.spec}', got '{lib.spec}'")
+    same = all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in zip(
+        (previous.nominal.M, previous.nominal.C, previous.nominal.K, previous.nominal.B),
+        (nominal.M, nominal.C, nominal.K, nominal.B)))
+    if not same or previous.nominal.extra_states != nominal.extra_states:
+        raise DataError("re-update needs the previous update's nominal model")
+
+
+def _history(previous, mode: str, rec: Records, forget: float, equations, seconds: float) -> list[dict]:
+    """The previous update's history plus an entry for this one."""
+    from datetime import datetime, timezone
+
+    from dtwin_jax import __version__
+
+    past = [] if previous is None else list(previous.history)
+    prior = "spike-and-slab" if previous is None else f"posterior of update {len(past)} (forget {forget:g})"
+    R, N, _ = rec.x.shape
+    return past + [{
+        "update": len(past) + 1,
+        "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "mode": mode,
+        "records": int(R),
+        "samples": int(R * N),
+        "window_s": float((N - 1) * rec.dt),
+        "prior": prior,
+        "seconds": round(seconds, 3),
+        "equations": [e.equation() for e in equations],
+        "dtwin_jax": __version__,
+    }]
+
+
+def _numpy_stats(stats: sampler.SuffStats) -> sampler.SuffStats:
+    return sampler.SuffStats(*(np.asarray(a) for a in stats))
 
 
 def _library(library, nominal: LinearSecondOrder, num_inputs: int) -> Library:
@@ -253,6 +319,8 @@ def update_input_output(
     settings: SamplerSettings = SamplerSettings(),
     seed: int = 0,
     progress: bool = False,
+    previous: UpdateResult | None = None,
+    forget: float = 1.0,
 ) -> UpdateResult:
     """Discover the perturbation of ``nominal`` from input-output measurements.
 
@@ -260,12 +328,16 @@ def update_input_output(
     ``(R, N, n)`` measured inputs (piecewise constant over each step); ``xdot`` measured rates
     of the same shape as ``x`` (accelerometers), or None to estimate the rates from ``x`` by
     a Savitzky-Golay derivative. ``library`` is a spec (formats.md) or a :class:`Library`.
+    ``previous``: an earlier update of the same twin (same nominal model and library) whose
+    posterior is the prior of this one (its statistics, times ``forget``, are added to the
+    new window's); the result's history continues the previous one.
     """
     start = time.perf_counter()
     rec = check_records(t, x, u, xdot, nominal)
     if rec.u is None:
         raise DataError("input-output update needs measured inputs 'u'")
     lib = _library(library, nominal, nominal.n)
+    _check_previous(previous, "input-output", nominal, lib, forget)
     hw = auto_half_width(nominal, rec.dt, rec.t.size)
     xs, smoothing_info = denoise_states(rec, nominal, smoothing)
     if rec.xdot is not None:
@@ -279,6 +351,7 @@ def update_input_output(
     # The same jitted chain as the batched studies (dtwin_jax.studies).
     correct = rec.xdot is not None and smoothing is not None
     stats, noise_var = smoothed_input_output_stats(nominal, lib, xs, rec.u, rates, hw, correct_inputs=correct)
+    stats = _with_previous(stats, "drift", previous, forget)
     trace = _sample_equations(stats, settings, seed, progress)
     trace = jax.tree.map(np.asarray, trace)
     names = nominal.state_names
@@ -304,11 +377,14 @@ def update_input_output(
         seconds=time.perf_counter() - start,
         preprocessing={
             "state_smoothing": smoothing_info,
+            "smoothing": smoothing,
             "rates": rate_source,
             "input_noise_std": None if noise_var is None else np.sqrt(noise_var).tolist(),
             "samples": int(R * N),
         },
         checks=checks,
+        statistics={"drift": _numpy_stats(stats)},
+        history=_history(previous, "input-output", rec, forget, equations, time.perf_counter() - start),
     )
 
 
@@ -347,6 +423,8 @@ def update_output_only(
     settings: SamplerSettings = SamplerSettings(),
     seed: int = 0,
     progress: bool = False,
+    previous: UpdateResult | None = None,
+    forget: float = 1.0,
 ) -> UpdateResult:
     """Discover drift perturbation and diffusion of ``nominal`` from measured states only.
 
@@ -355,12 +433,16 @@ def update_output_only(
     (drift, default :data:`OUTPUT_ONLY_LIBRARY`) and ``diffusion_library`` (default
     :data:`DIFFUSION_LIBRARY`) are specs (formats.md) or :class:`Library`. The result holds
     one ``drift`` equation per regressed state and one ``diffusion`` equation (the diagonal
-    ``Gamma_ii = (G G^T)_ii``, units of velocity^2 / s) per velocity.
+    ``Gamma_ii = (G G^T)_ii``, units of velocity^2 / s) per velocity. ``previous`` and
+    ``forget``: a re-update, as in :func:`update_input_output` (drift and diffusion).
     """
     start = time.perf_counter()
     rec = check_records(t, x, None, None, nominal)
     lib = _output_only_library(library, nominal, OUTPUT_ONLY_LIBRARY)
     dlib = _output_only_library(diffusion_library, nominal, DIFFUSION_LIBRARY)
+    _check_previous(previous, "output-only", nominal, lib, forget)
+    if previous is not None and previous.preprocessing.get("diffusion_library") != dlib.spec:
+        raise DataError(f"re-update needs the previous diffusion library '{previous.preprocessing.get('diffusion_library')}'")
     R, N, m = rec.x.shape
     dt = rec.dt
     noise_var = kramers_moyal.noise_variance(rec.x)
@@ -368,6 +450,7 @@ def update_output_only(
     drift_stats, margin = output_only_drift_stats(nominal, lib, rec.x, dt, noise_var, jax.random.key(seed))
     names = nominal.state_names
     regressed = [names[i] for i in nominal.regressed_index]
+    drift_stats = _with_previous(drift_stats, "drift", previous, forget)
     trace = _sample_equations(drift_stats, settings, seed, progress)
     drift = _posteriors(trace, regressed, "drift", lib.names, pip_threshold)
     # One step's mean drift: friction's sign averaged over half a step's Brownian increment.
@@ -387,6 +470,7 @@ def update_output_only(
     check_columns(Lg, dlib.names)
     gamma_var = np.diag(np.asarray(gamma_cov))
     stats = _diffusion_stats(equation_stats(Lg, Yg), Yg, np.asarray(gamma), gamma_var)
+    stats = _with_previous(stats, "diffusion", previous, forget)
     trace = _sample_equations(stats, settings, seed + 1, progress)
     velocities = [names[i] for i in nominal.velocity_index]
     diffusion = _posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
@@ -422,6 +506,8 @@ def update_output_only(
             "samples": int(R * N),
         },
         checks=checks,
+        statistics={"drift": _numpy_stats(drift_stats), "diffusion": _numpy_stats(stats)},
+        history=_history(previous, "output-only", rec, forget, drift + diffusion, time.perf_counter() - start),
     )
 
 
