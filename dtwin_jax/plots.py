@@ -1,10 +1,28 @@
-"""Figures: posterior inclusion probabilities as stem plots; noise sweeps (Fig. 10)."""
+"""Figures: posterior inclusion probabilities as stem plots; noise sweeps (Fig. 10);
+predictions with their 95% band (Figs. 7-9); degradation forecasts."""
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plot_pip", "plot_noise_sweep"]
+__all__ = ["plot_pip", "plot_noise_sweep", "plot_prediction", "plot_degradation"]
+
+
+def _figure(size):
+    """A figure outside pyplot: no backend is selected or changed (an interactive session
+    keeps its own), and Jupyter still displays the returned figure."""
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=size)
+
+
+def _save(fig, path):
+    if path is not None:
+        from dtwin_jax.io import atomic_path
+
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=110, format="png")
+    return fig
 
 
 def plot_pip(result, path=None):
@@ -13,13 +31,9 @@ def plot_pip(result, path=None):
     ``result`` is an :class:`~dtwin_jax.twin.UpdateResult`; selected terms are labelled.
     Written to ``path`` (PNG) when given.
     """
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
     eqs = result.equations
-    fig, axes = plt.subplots(len(eqs), 1, figsize=(10, 2.6 * len(eqs)), squeeze=False)
+    fig = _figure((10, 2.6 * len(eqs)))
+    axes = fig.subplots(len(eqs), 1, squeeze=False)
     for ax, eq in zip(axes[:, 0], eqs):
         pip = eq.pip
         k = np.arange(pip.size)
@@ -33,12 +47,7 @@ def plot_pip(result, path=None):
         ax.set_title(f"{eq.state} ({eq.kind}): {int(eq.selected.sum())} of {pip.size} terms selected", fontsize=10)
     axes[-1, 0].set_xlabel("library term index")
     fig.tight_layout()
-    if path is not None:
-        from dtwin_jax.io import atomic_path
-
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=110, format="png")
-    return fig
+    return _save(fig, path)
 
 
 def plot_noise_sweep(sweep, path=None):
@@ -48,13 +57,9 @@ def plot_noise_sweep(sweep, path=None):
     (% of replicates whose every equation has exactly the true support). Framework 2's
     diffusion terms are drawn dashed. Written to ``path`` (PNG) when given; returns the figure.
     """
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
     level = 100 * np.asarray(sweep.levels)
-    fig, (ax_err, ax_sup) = plt.subplots(1, 2, figsize=(11, 4))
+    fig = _figure((11, 4))
+    ax_err, ax_sup = fig.subplots(1, 2)
     parts = [(sweep, "-", "")] + ([(sweep.diffusion, "--", "diffusion ")] if sweep.diffusion is not None else [])
     for part, ls, prefix in parts:
         for name, err in part.term_errors().items():
@@ -74,9 +79,57 @@ def plot_noise_sweep(sweep, path=None):
     ax_sup.set_title("(b) support recovery", fontsize=9)
     ax_sup.legend(fontsize=8)
     fig.tight_layout()
-    if path is not None:
-        from dtwin_jax.io import atomic_path
+    return _save(fig, path)
 
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=110, format="png")
-    return fig
+
+def plot_prediction(prediction, truth=None, *, states=None, names=None, path=None, label="truth"):
+    """Predicted mean and 95% band of each state against ``truth (N, m)`` (the paper's
+    Figs. 7-9). ``prediction`` is the dict of :func:`dtwin_jax.predict.predict`; ``states``
+    the indices to show (default all)."""
+    t = np.asarray(prediction["t"])
+    mean, lower, upper = (np.asarray(prediction[k]) for k in ("mean", "lower", "upper"))
+    states = range(mean.shape[1]) if states is None else states
+    states = list(states)
+    fig = _figure((10, 2.4 * len(states)))
+    axes = fig.subplots(len(states), 1, squeeze=False, sharex=True)[:, 0]
+    for ax, i in zip(axes, states):
+        ax.fill_between(t, lower[:, i], upper[:, i], color="tab:blue", alpha=0.3, lw=0, label="95% band")
+        if truth is not None:
+            ax.plot(t, np.asarray(truth)[:, i], color="k", lw=0.8, label=label)
+        ax.plot(t, mean[:, i], color="tab:red", lw=0.8, ls="--", label="twin (mean)")
+        ax.set_ylabel(names[i] if names else f"x{i + 1}")
+    axes[0].legend(loc="upper right", fontsize=8, ncol=3)
+    axes[-1].set_xlabel("time (s)")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_degradation(forecast, truth=None, path=None):
+    """Damage forecast (mean, 95% band, truth) and the failure-probability curve with its
+    95% interval; ``forecast`` from :func:`dtwin_jax.predict.degradation_forecast`."""
+    t = np.asarray(forecast["t"])
+    fig = _figure((11, 4))
+    ax_d, ax_p = fig.subplots(1, 2)
+    ax_d.fill_between(t, forecast["damage_lower"], forecast["damage_upper"], color="tab:blue", alpha=0.3, lw=0,
+                      label="95% band")
+    if truth is not None:
+        ax_d.plot(t, truth, color="k", lw=1, label="truth")
+    ax_d.plot(t, forecast["damage_mean"], color="tab:red", ls="--", lw=1, label="twin (mean)")
+    ax_d.axhline(forecast["critical"], color="gray", ls=":", lw=1, label="critical level")
+    ax_d.set_xlabel("time (s)")
+    ax_d.set_ylabel("damage")
+    ax_d.legend(fontsize=8)
+    p = np.asarray(forecast["probability"])
+    ax_p.fill_between(t, forecast["probability_lower"], forecast["probability_upper"], color="tab:orange",
+                      alpha=0.3, lw=0, label="95% interval")
+    ax_p.plot(t, p, color="tab:orange", lw=1.2, label="P(damage > critical by t)")
+    if truth is not None:
+        crossed = np.flatnonzero(np.asarray(truth) > forecast["critical"])
+        if crossed.size:
+            ax_p.axvline(t[crossed[0]], color="k", lw=1, label="true crossing")
+    ax_p.set_ylim(-0.02, 1.02)
+    ax_p.set_xlabel("time (s)")
+    ax_p.set_ylabel("failure probability")
+    ax_p.legend(fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path)

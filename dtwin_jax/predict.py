@@ -21,7 +21,7 @@ from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library, parse_library
 from dtwin_jax.systems import LinearSecondOrder
 
-__all__ = ["UpdatedTwin", "posterior_twins", "predict", "simulation_error"]
+__all__ = ["UpdatedTwin", "posterior_twins", "predict", "simulation_error", "effective_stiffness", "degradation_forecast"]
 
 
 class UpdatedTwin(eqx.Module):
@@ -123,15 +123,15 @@ def _paths(twins: UpdatedTwin, x0, t, u, keys):
     if twins.stochastic:
         run = lambda c, dc, k: systems.simulate_sde(_one(twins, c, dc), x0, t, k)
         return jax.vmap(run)(twins.coefficients, twins.diffusion_coefficients, keys)
-    run = lambda c: systems.simulate(_one(twins, c, None), x0, t, u, rtol=1e-8, atol=1e-10)[0]
-    return jax.vmap(run)(twins.coefficients)
+    run = lambda c, uu: systems.simulate(_one(twins, c, None), x0, t, uu, rtol=1e-8, atol=1e-10)[0]
+    return jax.vmap(run, (0, 0 if u.ndim == 3 else None))(twins.coefficients, u)
 
 
 def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = False) -> dict:
     """Posterior-predictive simulation of stacked twins (:func:`posterior_twins`).
 
     `x0 (m,)`, `t (N,)` s; `u (N, n)` the input of an input-output twin (held over each
-    step). An output-only twin is driven by Brownian forcing: an independent path per draw
+    step), or `(S, N, n)` one input per draw (future loads that are themselves uncertain). An output-only twin is driven by Brownian forcing: an independent path per draw
     from `key` (the band holds the process noise too), or with `shared_path` one path for
     all (the band holds the parameter uncertainty only; the truth driven by
     `systems.simulate_sde(..., key)` sees the same path). Returns `t`, `mean`, `lower`,
@@ -148,7 +148,8 @@ def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = 
         if u is None:
             raise DataError("an input-output twin needs the input u (N, n) to predict")
         u = jnp.asarray(u, dtype=float)
-        paths = _paths(twins, x0, t, u.reshape(t.shape[0], -1), None)
+        u = u.reshape((S, t.shape[0], -1) if u.ndim == 3 else (t.shape[0], -1))
+        paths = _paths(twins, x0, t, u, None)
     lower, upper = jnp.quantile(paths, jnp.array([0.025, 0.975]), axis=0)
     return {"t": t, "mean": paths.mean(axis=0), "lower": lower, "upper": upper, "paths": paths}
 
@@ -159,3 +160,66 @@ def simulation_error(predicted, measured) -> dict:
     predicted, measured = np.asarray(predicted), np.asarray(measured)
     rms = np.sqrt(np.mean((predicted - measured) ** 2, axis=0))
     return {"rmse": rms, "nrmse": rms / np.std(measured, axis=0)}
+
+
+def effective_stiffness(twins: UpdatedTwin, x) -> jax.Array:
+    """`K_eff (S, d, d)`: the linear stiffness of each twin draw at state `x (m,)` or
+    `(S, m)`, `-M d(acceleration)/d(displacement)` (force per displacement); equals the
+    nominal `K` where the perturbation adds no stiffness."""
+    nominal = twins.nominal
+    d = nominal.d
+    x = jnp.broadcast_to(jnp.asarray(x, dtype=float), (jnp.shape(twins.coefficients)[0], nominal.m))
+    u = jnp.zeros(nominal.n)
+
+    def one(c, dc, xx):
+        twin = _one(twins, c, dc if twins.stochastic else None)
+        jac = jax.jacfwd(lambda z: twin.rate(z, u))(xx)
+        return -nominal.M @ jac[d : 2 * d, :d]
+
+    return jax.vmap(one)(twins.coefficients, _diffusion_or_zeros(twins), x)
+
+
+def _diffusion_or_zeros(twins):
+    S = jnp.shape(twins.coefficients)[0]
+    return twins.diffusion_coefficients if twins.stochastic else jnp.zeros((S, 0))
+
+
+def degradation_forecast(twins: UpdatedTwin, prediction: dict, damage: int, critical: float,
+                         *, every: int = 10) -> dict:
+    """Damage, stiffness loss and failure probability over a long prediction.
+
+    `prediction` from :func:`predict` (its `paths (S, N, m)` from the stacked `twins`);
+    `damage` the index of the damage state, `critical` its failure level. Returns `t`;
+    `damage_mean`, `damage_lower`, `damage_upper` `(N,)` (2.5% and 97.5% over draws);
+    `probability (N,)`, the fraction of draws whose damage has passed `critical` by each
+    time, with a 95% Jeffreys interval for its Monte Carlo error (`probability_lower`,
+    `_upper`); and every `every`-th sample's relative stiffness loss `1 - K_eff / K`
+    (diagonal, `(N', d)`, `loss_t`) at zero displacement and velocity, mean and band.
+    """
+    from scipy.stats import beta
+
+    paths = np.asarray(prediction["paths"])
+    S = paths.shape[0]
+    dmg = paths[:, :, damage]
+    passed = np.maximum.accumulate(dmg, axis=1) > critical
+    k = passed.sum(axis=0)
+    lower = np.where(k > 0, beta.ppf(0.025, k + 0.5, S - k + 0.5), 0.0)
+    upper = np.where(k < S, beta.ppf(0.975, k + 0.5, S - k + 0.5), 1.0)
+    # Stiffness along each draw's own damage path (the other states at zero).
+    nominal = twins.nominal
+    idx = np.arange(0, paths.shape[1], every)
+    states = np.zeros((idx.size, S, nominal.m))
+    states[:, :, damage] = dmg[:, idx].T
+    K0 = np.diagonal(np.asarray(nominal.K))
+    stiff = jax.lax.map(lambda xs: effective_stiffness(twins, xs), jnp.asarray(states))  # (N', S, d, d)
+    loss = 1.0 - np.diagonal(np.asarray(stiff), axis1=-2, axis2=-1) / K0  # (N', S, d)
+    q = lambda a, p: np.quantile(a, p, axis=0)
+    return {
+        "t": np.asarray(prediction["t"]),
+        "critical": float(critical),
+        "damage_mean": dmg.mean(axis=0), "damage_lower": q(dmg, 0.025), "damage_upper": q(dmg, 0.975),
+        "probability": k / S, "probability_lower": lower, "probability_upper": upper,
+        "loss_t": np.asarray(prediction["t"])[idx],
+        "loss_mean": loss.mean(axis=1), "loss_lower": np.quantile(loss, 0.025, axis=1),
+        "loss_upper": np.quantile(loss, 0.975, axis=1),
+    }

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import posterior_twins, predict, simulate, simulation_error, systems
+from dtwin_jax.predict import degradation_forecast
 from dtwin_jax.store import load_twin, save_twin
 
 
@@ -54,3 +55,24 @@ def check_output_only_prediction(ex, result, tol=0.10):
     again = predict(posterior_twins(loaded, 100, jax.random.key(3)), ex.x0, t, key=jax.random.key(11))
     np.testing.assert_array_equal(np.asarray(again["mean"]), np.asarray(band["mean"]))
     np.testing.assert_array_equal(np.asarray(again["upper"]), np.asarray(band["upper"]))
+
+
+def check_degradation_forecast(ex, result, horizon=10.0, draws=30):
+    """Example 3 over a `horizon` s service window under a new input: the twins' 95% band
+    of the damage brackets the true damage path, and the failure-probability curve for a
+    critical level the truth passes at 2/3 of the horizon rises from 0 to above 1/2."""
+    new = systems.simulate_example(ex, jax.random.key(7), duration=horizon)
+    twins = posterior_twins(result, draws, jax.random.key(3))
+    pred = predict(twins, ex.x0, new["t"], new["u"])
+    truth = np.asarray(new["x"][:, 2])
+    critical = float(truth[2 * truth.size // 3])
+    fc = degradation_forecast(twins, pred, 2, critical)
+    inside = np.mean((truth >= fc["damage_lower"]) & (truth <= fc["damage_upper"]))
+    crossing = np.flatnonzero(truth > critical)[0]
+    p = fc["probability"]
+    true_loss = 0.5 * (1.0 - np.exp(-truth[:: 10]))  # 1 - lambda(x3) of the true law
+    loss_inside = np.mean((true_loss >= fc["loss_lower"][:, 0] - 1e-4) & (true_loss <= fc["loss_upper"][:, 0] + 1e-4))
+    print(f"damage inside the band {inside:.4f}; stiffness loss inside {loss_inside:.4f}; failure probability "
+          f"at 2 s {p[2000]:.2f}, at the true crossing {p[crossing]:.2f}, at the end {p[-1]:.2f}")
+    assert inside > 0.95 and loss_inside > 0.95
+    assert np.all(np.diff(p) >= 0) and p[2000] == 0.0 and p[-1] > 0.5

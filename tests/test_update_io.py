@@ -12,7 +12,7 @@ import dtwin_jax  # noqa: F401
 from dtwin_jax import systems
 from dtwin_jax.measurement import measure
 from dtwin_jax.twin import SamplerSettings, update_input_output
-from predictive import check_input_output_prediction
+from predictive import check_degradation_forecast, check_input_output_prediction
 
 SETTINGS = SamplerSettings(num_chains=2, num_draws=1000, num_burnin=500)
 
@@ -56,6 +56,7 @@ def test_example3_five_percent_identifiable_degradation_terms():
     # The damage law's x1**2 (0.05% of the damage rate) is documented as not identifiable.
     eq3 = next(e for e in res.equations if e.state == "x3")
     assert eq3.pip[eq3.names.index("x1**2")] < 0.5
+    check_degradation_forecast(ex, res)
 
 
 def test_example2_five_percent():
