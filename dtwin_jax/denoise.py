@@ -19,6 +19,7 @@ tap, because the signal lives well below the filter's cutoff.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -153,10 +154,17 @@ def kinematic_smoother(
     """
     x = jnp.asarray(x)
     xdot = jnp.asarray(xdot)
+    if half_width is None:
+        half_width = auto_half_width(nominal, dt, x.shape[0])
+    return _kinematic_smoother(nominal, dt, x, xdot, None if u is None else jnp.asarray(u), int(half_width))
+
+
+@eqx.filter_jit
+def _kinematic_smoother(nominal: LinearSecondOrder, dt: float, x, xdot, u, half_width: int):
+    # Compiled as a whole: run eagerly, the noise fit's loop compiled anew on every call
+    # (6 s per 1000-sample record).
     N, m = x.shape
     d, E = nominal.d, nominal.extra_states
-    if half_width is None:
-        half_width = auto_half_width(nominal, dt, N)
     jump = jnp.zeros_like(xdot)
     if u is not None:
         force = jnp.linalg.solve(nominal.M, nominal.B @ jnp.asarray(u).T).T  # (N, d)
