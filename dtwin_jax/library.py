@@ -14,6 +14,7 @@ States are `x1..xm`, inputs `u1..un`. A library spec is a comma-separated list o
 | `sin`    | `sin(xi)`                                              |
 | `cos`    | `cos(xi)`                                              |
 | `input`  | `u1..un`                                               |
+| `terms:E1;E2;...` | exactly the listed expressions, each one of the terms above |
 
 Every term name is the canonical SymPy string of the term: `str(sympy.sympify(name)) == name`.
 """
@@ -251,6 +252,38 @@ def _parse_family(token):
     return name, None
 
 
+def _listed_terms(token, xs, us):
+    """`[(family, index, name)]` of a `terms:E1;E2;...` token: each expression is matched,
+    after SymPy's canonical printing, to the family term that evaluates it."""
+    exprs = [e.strip() for e in token.partition(":")[2].split(";")]
+    if not all(exprs):
+        raise DataError(f"library family {token!r} lists an empty term")
+    known = {s_.name for s_ in xs + us}
+    out = []
+    for e in exprs:
+        expr = to_sympy(e)
+        unknown = sorted(str(f) for f in expr.free_symbols if f.name not in known)
+        if unknown:
+            raise DataError(f"library term {e!r} uses {unknown[0]!r}, not one of the states x1..x{len(xs)}"
+                            + (f" or inputs u1..u{len(us)}" if us else ""))
+        name = str(expr)
+        candidates = [("poly", max(1, sympy.Poly(expr, *xs).total_degree()))] if expr.is_polynomial(*xs) \
+            and not expr.free_symbols - set(xs) else []
+        candidates += [(f, None) for f in FAMILIES if f != "poly" and (f != "input" or us)]
+        for family, degree in candidates:
+            idx, raw = _family_terms(family, degree, xs, us)
+            names = raw if family == "poly" else [str(to_sympy(r)) for r in raw]
+            if name in names:
+                out.append((family, tuple(idx[names.index(name)]), name))
+                break
+        else:
+            raise DataError(
+                f"library term {e!r} is none of the library's functions (monomials, sign, Abs, x*Abs(y), "
+                "exp(-x), exp(-x)*y, exp(-x*y), sin, cos, u)"
+            )
+    return out
+
+
 def parse_library(spec: str, num_states: int, num_inputs: int) -> Library:
     """Build the library of a spec such as `"poly:3,sign,abs"` for `m` states, `n` inputs."""
     if not isinstance(num_states, (int, np.integer)) or num_states < 1:
@@ -265,18 +298,23 @@ def parse_library(spec: str, num_states: int, num_inputs: int) -> Library:
     xs, us = symbols(int(num_states), int(num_inputs))
     blocks, names, seen = [], [], set()
     for token in tokens:
-        family, degree = _parse_family(token)
-        if family == "input" and num_inputs == 0:
-            raise DataError("library family 'input' needs measured inputs")
-        idx, raw = _family_terms(family, degree, xs, us)
-        for r in raw:
+        if token.startswith("terms:"):
+            listed = _listed_terms(token, xs, us)
+            parts = [(family, [idx], [name]) for family, idx, name in listed]
+        else:
+            family, degree = _parse_family(token)
+            if family == "input" and num_inputs == 0:
+                raise DataError("library family 'input' needs measured inputs")
+            idx, raw = _family_terms(family, degree, xs, us)
             # Monomials are already str(sympy.Mul); the rest go through SymPy's printer.
-            name = r if family == "poly" else str(to_sympy(r))
-            if name in seen:
-                raise DataError(f"library term {name!r} appears twice in spec {spec!r}")
-            seen.add(name)
-            names.append(name)
-        blocks.append((family, tuple(tuple(t) for t in idx)))
+            parts = [(family, idx, [r if family == "poly" else str(to_sympy(r)) for r in raw])]
+        for family, idx, part_names in parts:
+            for name in part_names:
+                if name in seen:
+                    raise DataError(f"library term {name!r} appears twice in spec {spec!r}")
+                seen.add(name)
+                names.append(name)
+            blocks.append((family, tuple(tuple(t) for t in idx)))
     return Library(
         names=tuple(names),
         num_states=int(num_states),

@@ -311,3 +311,27 @@ def test_empty_subset_evaluates_to_no_columns():
     empty = lib.subset(np.zeros(len(lib.names), bool))
     assert empty.names == ()
     assert empty(jnp.ones((7, 2))).shape == (7, 0)
+
+
+def test_listed_terms_match_their_families_and_values():
+    lib = parse_library("terms:x1**3;x2*x1**2;sign(x2);x2*Abs(x2);exp(-x1)*x2;1;u1", 2, 1)
+    assert lib.names == ("x1**3", "x1**2*x2", "sign(x2)", "x2*Abs(x2)", "x2*exp(-x1)", "1", "u1")
+    x = np.random.default_rng(0).normal(size=(50, 2))
+    u = np.random.default_rng(1).normal(size=(50, 1))
+    expected = np.stack([x[:, 0] ** 3, x[:, 0] ** 2 * x[:, 1], np.sign(x[:, 1]), x[:, 1] * np.abs(x[:, 1]),
+                         np.exp(-x[:, 0]) * x[:, 1], np.ones(50), u[:, 0]], axis=1)
+    np.testing.assert_allclose(np.asarray(lib(x, u)), expected, rtol=1e-14, atol=1e-15)
+    mixed = parse_library("poly:1,terms:x1**3", 2, 0)
+    assert mixed.names == ("1", "x1", "x2", "x1**3")
+    assert parse_library(mixed.spec, 2, 0).names == mixed.names
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("terms:x3**2", "not one of the states"),
+    ("terms:tanh(x1)", "none of the library's functions"),
+    ("terms:x1;;x2", "empty term"),
+    ("poly:3,terms:x1**3", "appears twice"),
+])
+def test_listed_terms_errors(spec, message):
+    with pytest.raises(DataError, match=message):
+        parse_library(spec, 2, 0)
