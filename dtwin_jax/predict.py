@@ -105,10 +105,17 @@ def posterior_twins(result, num_draws: int = 100, key=None) -> UpdatedTwin:
         return eqx.tree_at(lambda t: t.coefficients, twin, jnp.asarray(coef))
     dcoef = np.stack([e.theta[c, k] for e in diffusion], axis=1)  # (S, d, Kd)
     assert [e.state for e in diffusion] == [names[v] for v in result.nominal.velocity_index]
-    # Only the terms some draw uses: a constant-only diffusion keeps additive noise.
-    used = np.any(dcoef != 0, axis=(0, 1))
+    return UpdatedTwin(twin.nominal, twin.library, twin.regressed, jnp.asarray(coef), *diffusion_terms(result, dcoef))
+
+
+def diffusion_terms(result, dcoef) -> tuple[Library, jax.Array]:
+    """An output-only update's diffusion library, kept to the terms that some row of
+    `dcoef (..., d, Kd)` uses (a constant-only diffusion stays additive noise, for ShARK),
+    and those coefficients."""
+    dcoef = np.asarray(dcoef)
+    used = np.any(dcoef != 0, axis=tuple(range(dcoef.ndim - 1)))
     dlib = parse_library(result.preprocessing["diffusion_library"], result.nominal.m, 0).subset(used)
-    return UpdatedTwin(twin.nominal, twin.library, twin.regressed, jnp.asarray(coef), dlib, jnp.asarray(dcoef[..., used]))
+    return dlib, jnp.asarray(dcoef[..., used])
 
 
 def _one(twins: UpdatedTwin, coef, dcoef) -> UpdatedTwin:

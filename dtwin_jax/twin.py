@@ -28,7 +28,7 @@ from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_lib
 from dtwin_jax.denoise import auto_half_width, kinematic_smoother, savgol_states
 from dtwin_jax.measurement import smooth
 from dtwin_jax.posterior import EquationPosterior
-from dtwin_jax.predict import UpdatedTwin
+from dtwin_jax.predict import UpdatedTwin, diffusion_terms
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.checks import residual_checks
 from dtwin_jax.targets import equation_stats, input_output_targets, smoothed_input_output_stats
@@ -103,11 +103,8 @@ class UpdateResult:
         diffusion = [e for e in self.equations if e.kind == "diffusion"]
         if not diffusion:
             return UpdatedTwin(self.nominal, self.library, index, jnp.asarray(coef))
-        dlib = parse_library(self.preprocessing["diffusion_library"], self.nominal.m, 0)
         dcoef = np.stack([e.coefficients for e in diffusion])
-        used = np.any(dcoef != 0, axis=0)  # a constant-only diffusion stays additive noise
-        return UpdatedTwin(self.nominal, self.library, index, jnp.asarray(coef), dlib.subset(used),
-                           jnp.asarray(dcoef[:, used]))
+        return UpdatedTwin(self.nominal, self.library, index, jnp.asarray(coef), *diffusion_terms(self, dcoef))
 
     def diagnostics(self) -> dict:
         rhat = np.concatenate([e.rhat() for e in self.equations] + [np.zeros(0)])
