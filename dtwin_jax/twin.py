@@ -213,12 +213,8 @@ def _with_previous(stats: sampler.SuffStats, kind: str, previous, forget: float)
     old = previous.statistics.get(kind)
     if old is None:
         raise DataError(f"the previous update holds no {kind} statistics to combine with")
-    old = sampler.SuffStats(*(np.asarray(a) for a in old))
-    if old.xty.shape != np.shape(stats.xty):
-        raise DataError(
-            f"the previous update's {kind} library has shape {old.xty.shape}, this one {np.shape(stats.xty)}"
-        )
-    return sampler.SuffStats(*(jnp.asarray(a) + forget * b for a, b in zip(stats, old)))
+    # Same shapes: _check_previous has matched the libraries.
+    return sampler.SuffStats(*(jnp.asarray(a) + forget * np.asarray(b) for a, b in zip(stats, old)))
 
 
 def _check_previous(previous, mode: str, nominal: LinearSecondOrder, lib: Library, forget: float) -> None:
