@@ -48,8 +48,8 @@ def _nonneg_int(text: str) -> int:
 
 
 def _smoothing(text: str):
-    if text in ("auto", "none"):
-        return None if text == "none" else "auto"
+    if text in ("auto", "none", "statespace", "savgol"):
+        return None if text == "none" else text
     return _positive_int(text)
 
 
@@ -60,7 +60,9 @@ def _add_sampler_args(p: argparse.ArgumentParser, draws: int, burn_in: int) -> N
     p.add_argument("--burn-in", type=_nonneg_int, default=burn_in, help=f"discarded sweeps per chain (default {burn_in})")
     p.add_argument("--pip-threshold", type=float, default=0.5, help="select terms with PIP above this (default 0.5)")
     p.add_argument("--smoothing", type=_smoothing, default="auto",
-                   help="state denoising: auto (Savitzky-Golay matched to the sampling rate), none, or a half width")
+                   help="state denoising: auto (kinematic smoother with measured rates, else Savitzky-Golay matched "
+                        "to the sampling rate, or the state-space smoother when states are missing or the sampling "
+                        "is too slow for it), statespace, savgol, none, or a Savitzky-Golay half width")
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
@@ -167,11 +169,15 @@ def _update(args, mode, nominal, data, *, library, diffusion_library=None, previ
     common = dict(pip_threshold=args.pip_threshold, settings=_settings(args), seed=args.seed,
                   progress=not args.quiet, previous=previous, forget=forget)
     if mode == "output-only":
+        if data.get("x_names") not in (None, list(nominal.state_names)) or "xdot" in data:
+            raise DataError("output-only mode needs every state measured (no 'x_names' subset, no 'xdot')")
         return update_output_only(nominal, data["t"], data["x"], library=library,
                                   diffusion_library=diffusion_library, **common)
     if "u" not in data:
         raise DataError(f"input-output mode needs key 'u' in '{args.data}'")
     return update_input_output(nominal, data["t"], data["x"], data["u"], data.get("xdot"),
+                               x_names=data.get("x_names"), xdot_names=data.get("xdot_names"),
+                               interpolation=data.get("u_interpolation", "held"),
                                library=library, smoothing=args.smoothing, **common)
 
 

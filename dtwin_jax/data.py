@@ -45,8 +45,13 @@ def _as_records(name: str, a, N: int, width: int | None, what: str) -> np.ndarra
     return a
 
 
-def check_records(t, x, u=None, xdot=None, nominal: LinearSecondOrder | None = None) -> Records:
-    """Check shapes, finiteness and uniform sampling; return :class:`Records`."""
+def check_records(
+    t, x, u=None, xdot=None, nominal: LinearSecondOrder | None = None, *, x_columns=None, xdot_columns=None
+) -> Records:
+    """Check shapes, finiteness and uniform sampling; return :class:`Records`.
+
+    ``x`` and ``xdot`` have ``nominal.m`` columns, or ``x_columns`` / ``xdot_columns`` when
+    only some states (or rates) are measured."""
     t = np.asarray(t, dtype=np.float64)
     if t.ndim != 1:
         raise DataError(f"'t' must be one-dimensional, got shape {t.shape}")
@@ -63,14 +68,14 @@ def check_records(t, x, u=None, xdot=None, nominal: LinearSecondOrder | None = N
     N = t.size
     m = nominal.m if nominal is not None else None
     n = nominal.n if nominal is not None else None
-    x = _as_records("x", x, N, m, "m")
+    x = _as_records("x", x, N, m if x_columns is None else x_columns, "m")
     R = x.shape[0]
     if u is not None:
         u = _as_records("u", u, N, n, "n")
         if u.shape[0] != R:
             raise DataError(f"'u' has {u.shape[0]} records but 'x' has {R}")
     if xdot is not None:
-        xdot = _as_records("xdot", xdot, N, x.shape[2], "m")
+        xdot = _as_records("xdot", xdot, N, x.shape[2] if xdot_columns is None else xdot_columns, "m")
         if xdot.shape[0] != R:
             raise DataError(f"'xdot' has {xdot.shape[0]} records but 'x' has {R}")
     return Records(t, x, u, xdot)

@@ -22,7 +22,7 @@ __all__ = ["load_nominal", "load_measurements", "load_prediction_input", "write_
 
 
 def load_nominal(path) -> LinearSecondOrder:
-    """Read ``M``, ``C``, ``K`` (d x d), optional ``B`` (d x n) and ``extra_states``."""
+    """Read ``M``, ``C``, ``K`` (d x d), optional ``B`` (d x n), ``extra_states`` and ``F0`` (d)."""
     path = Path(path)
     try:
         with path.open("rb") as f:
@@ -46,8 +46,16 @@ def load_nominal(path) -> LinearSecondOrder:
     extra = doc.get("extra_states", 0)
     if not isinstance(extra, int) or isinstance(extra, bool) or extra < 0:
         raise DataError(f"'extra_states' in '{path}' must be a non-negative integer")
+    F0 = doc.get("F0")
+    if F0 is not None:
+        try:
+            F0 = np.asarray(F0, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise DataError(f"'F0' in '{path}' is not a numeric vector") from None
+        if F0.ndim != 1:
+            raise DataError(f"'F0' in '{path}' must be a vector (one force per degree of freedom)")
     return LinearSecondOrder.create(
-        mats["M"], mats["C"], mats["K"], mats.get("B"), extra_states=extra
+        mats["M"], mats["C"], mats["K"], mats.get("B"), extra_states=extra, F0=F0
     )
 
 
@@ -59,16 +67,19 @@ def write_nominal(path, nominal: LinearSecondOrder) -> None:
 
     text = (
         f"M = {mat(nominal.M)}\nC = {mat(nominal.C)}\nK = {mat(nominal.K)}\n"
-        f"B = {mat(nominal.B)}\nextra_states = {nominal.extra_states}\n"
+        f"B = {mat(nominal.B)}\nF0 = {mat(np.asarray(nominal.F0)[None])[1:-1]}\n"
+        f"extra_states = {nominal.extra_states}\n"
     )
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text)
 
 
 def load_measurements(path) -> dict:
-    """Read ``t``, ``x`` and optional ``u``, ``xdot`` from ``.npz`` or ``.csv``.
+    """Read ``t``, ``x`` and optional ``u``, ``xdot``, ``x_names``, ``xdot_names`` and
+    ``u_interpolation`` from ``.npz`` or ``.csv``.
 
-    A CSV file holds one record with header ``t,x1..xm[,u1..un]``; columns ``xdot1..xdotm``
+    A CSV file holds one record with header ``t,`` then measured state names (all of
+    ``x1..xm`` or a subset, which become ``x_names``) ``[,u1..un]``; columns ``xdot1..``
     (an extension) carry measured rates.
     """
     path = Path(path)
@@ -95,6 +106,17 @@ def load_measurements(path) -> dict:
     for key, a in out.items():
         if not np.issubdtype(np.asarray(a).dtype, np.number):
             raise DataError(f"'{key}' in '{path}' is not numeric")
+    for key in ("x_names", "xdot_names"):
+        if key in data:
+            names = np.atleast_1d(data[key])
+            if names.ndim != 1 or not np.issubdtype(names.dtype, np.str_):
+                raise DataError(f"'{key}' in '{path}' must be a vector of state names like ['x1']")
+            out[key] = [str(n) for n in names]
+    if "u_interpolation" in data:
+        value = np.asarray(data["u_interpolation"])
+        if value.shape != () or not np.issubdtype(value.dtype, np.str_):
+            raise DataError(f"'u_interpolation' in '{path}' must be one string (held, linear or bandlimited)")
+        out["u_interpolation"] = str(value)
     return out
 
 
@@ -143,12 +165,16 @@ def _read_csv(path: Path) -> dict:
     data = {}
     if "t" in cols:
         data["t"] = cols["t"]
-    for key, prefix in (("x", "x"), ("u", "u"), ("xdot", "xdot")):
+    for key, prefix in (("u", "u"), ("xdot", "xdot")):
         names = _numbered(header, prefix)
         if names:
             data[key] = np.stack([cols[n] for n in names], axis=1)
-    unknown = [h for h in header if h != "t" and not any(
-        h in _numbered(header, p) for p in ("x", "u", "xdot"))]
+    states = [h for h in header if h.startswith("x") and h[1:].isdigit()]  # a subset in any order
+    if states:
+        data["x"] = np.stack([cols[n] for n in states], axis=1)
+        data["x_names"] = np.asarray(states)  # the header names them: all states or a subset
+    unknown = [h for h in header if h != "t" and h not in states and not any(
+        h in _numbered(header, p) for p in ("u", "xdot"))]
     if unknown:
         raise DataError(f"'{path}' has unknown column '{unknown[0]}' (expected t, x1.., u1.., xdot1..)")
     return data

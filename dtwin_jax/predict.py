@@ -31,7 +31,9 @@ class UpdatedTwin(eqx.Module):
     `coefficients (q, K)` of `library` for the states `regressed` (indices into the state);
     `diffusion_coefficients (d, Kd)` of `diffusion_library` give `Gamma_vv(x)` (velocity^2/s)
     of every velocity, or are None for an input-output twin. Arrays may carry a leading
-    batch axis (posterior draws): vmap over it with `eqx.filter_vmap`.
+    batch axis (posterior draws): vmap over it with `eqx.filter_vmap`. `interpolation`:
+    how the input behaves between samples (:func:`systems.check_interpolation`), as in the
+    data the twin was updated from.
     """
 
     nominal: LinearSecondOrder
@@ -40,6 +42,7 @@ class UpdatedTwin(eqx.Module):
     coefficients: jax.Array
     diffusion_library: Library | None = eqx.field(static=True, default=None)
     diffusion_coefficients: jax.Array | None = None
+    interpolation: str = eqx.field(static=True, default="held")
 
     def perturbation(self, x, u):
         """Discovered extra rate `(m,)` at one sample `x (m,)`, `u (n,)`."""
@@ -105,7 +108,8 @@ def posterior_twins(result, num_draws: int = 100, key=None) -> UpdatedTwin:
         return eqx.tree_at(lambda t: t.coefficients, twin, jnp.asarray(coef))
     dcoef = np.stack([e.theta[c, k] for e in diffusion], axis=1)  # (S, d, Kd)
     assert [e.state for e in diffusion] == [names[v] for v in result.nominal.velocity_index]
-    return UpdatedTwin(twin.nominal, twin.library, twin.regressed, jnp.asarray(coef), *diffusion_terms(result, dcoef))
+    return UpdatedTwin(twin.nominal, twin.library, twin.regressed, jnp.asarray(coef), *diffusion_terms(result, dcoef),
+                       twin.interpolation)
 
 
 def diffusion_terms(result, dcoef) -> tuple[Library, jax.Array]:
@@ -130,7 +134,9 @@ def _paths(twins: UpdatedTwin, x0, t, u, keys):
     if twins.stochastic:
         run = lambda c, dc, k: systems.simulate_sde(_one(twins, c, dc), x0, t, k)
         return jax.vmap(run)(twins.coefficients, twins.diffusion_coefficients, keys)
-    run = lambda c, uu: systems.simulate(_one(twins, c, None), x0, t, uu, rtol=1e-8, atol=1e-10)[0]
+    run = lambda c, uu: systems.simulate(
+        _one(twins, c, None), x0, t, uu, rtol=1e-8, atol=1e-10, interpolation=twins.interpolation
+    )[0]
     return jax.vmap(run, (0, 0 if u.ndim == 3 else None))(twins.coefficients, u)
 
 
@@ -138,7 +144,7 @@ def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = 
     """Posterior-predictive simulation of stacked twins (:func:`posterior_twins`).
 
     `x0 (m,)`, `t (N,)` s; `u (N, n)` the input of an input-output twin (held over each
-    step), or `(S, N, n)` one input per draw (future loads that are themselves uncertain). An output-only twin is driven by Brownian forcing: an independent path per draw
+    step or interpolated linearly, as `twins.interpolation`), or `(S, N, n)` one input per draw (future loads that are themselves uncertain). An output-only twin is driven by Brownian forcing: an independent path per draw
     from `key` (the band holds the process noise too), or with `shared_path` one path for
     all (the band holds the parameter uncertainty only; the truth driven by
     `systems.simulate_sde(..., key)` sees the same path). Returns `t`, `mean`, `lower`,

@@ -34,21 +34,24 @@ __all__ = [
 
 
 class LinearSecondOrder(eqx.Module):
-    """Nominal model `M q'' + C q' + K q = B u` in state-space form.
+    """Nominal model `M q'' + C q' + K q = B u + F0` in state-space form.
 
-    `M`, `C`, `K` are `(d, d)`, `B` is `(d, n)`; `extra_states` (`E`) appends
-    first-order states whose nominal rate is zero. Use `create` to validate input.
+    `M`, `C`, `K` are `(d, d)`, `B` is `(d, n)`, `F0 (d,)` a constant force (a sensor or
+    actuator offset, force units); `extra_states` (`E`) appends first-order states whose
+    nominal rate is zero. Use `create` to validate input.
     """
 
     M: Float[Array, "d d"]
     C: Float[Array, "d d"]
     K: Float[Array, "d d"]
     B: Float[Array, "d n"]
+    F0: Float[Array, " d"]
     extra_states: int = eqx.field(static=True, default=0)
 
     @classmethod
-    def create(cls, M, C, K, B=None, extra_states: int = 0) -> "LinearSecondOrder":
-        """Validate concrete matrices and build the model. `B` defaults to the identity."""
+    def create(cls, M, C, K, B=None, extra_states: int = 0, F0=None) -> "LinearSecondOrder":
+        """Validate concrete matrices and build the model. `B` defaults to the identity,
+        `F0` to zero."""
         arrays = {}
         for name, value in (("M", M), ("C", C), ("K", K)):
             a = np.asarray(value, dtype=np.float64)
@@ -69,6 +72,10 @@ class LinearSecondOrder(eqx.Module):
         if Bn.ndim != 2 or Bn.shape[0] != d:
             raise DataError(f"nominal B has shape {Bn.shape}, expected ({d}, n)")
         arrays["B"] = Bn
+        F = np.zeros(d) if F0 is None else np.asarray(F0, dtype=np.float64).reshape(-1)
+        if F.shape != (d,):
+            raise DataError(f"nominal F0 has {F.size} entries, expected {d} (one per degree of freedom)")
+        arrays["F0"] = F
         for name, a in arrays.items():
             if not np.all(np.isfinite(a)):
                 raise DataError(f"nominal {name} has non-finite entries")
@@ -77,7 +84,7 @@ class LinearSecondOrder(eqx.Module):
         cond = np.linalg.cond(arrays["M"])
         if not np.isfinite(cond) or cond > 1e12:
             raise DataError(f"nominal mass matrix M is singular (cond={cond:.3g})")
-        return cls(*(jnp.asarray(arrays[k]) for k in ("M", "C", "K", "B")), int(extra_states))
+        return cls(*(jnp.asarray(arrays[k]) for k in ("M", "C", "K", "B", "F0")), int(extra_states))
 
     @property
     def d(self) -> int:
@@ -119,7 +126,7 @@ class LinearSecondOrder(eqx.Module):
         """Nominal state rate `(m,)` for one state `x (m,)` and input `u (n,)`."""
         d = self.d
         q, v = x[:d], x[d : 2 * d]
-        a = jnp.linalg.solve(self.M, self.B @ u - self.C @ v - self.K @ q)
+        a = jnp.linalg.solve(self.M, self.B @ u + self.F0 - self.C @ v - self.K @ q)
         return jnp.concatenate([v, a, jnp.zeros(self.extra_states, dtype=x.dtype)])
 
     def rate_batch(self, x: Float[Array, "N m"], u: Float[Array, "N n"]) -> Float[Array, "N m"]:
@@ -146,13 +153,49 @@ class PerturbedSystem(eqx.Module):
         return jax.vmap(self.rate)(x, u)
 
 
-def _vector_field(s, y, args):
+def _held_field(s, y, args):
     # Module level (not a closure) so diffeqsolve's jit cache is reused across calls.
     system, t, u = args
     # side="right" gives i on [t_i, t_{i+1}); diffrax steps to prevbefore(t_{i+1})
     # and evaluates c == 1 stages at exactly that t1, so no stage sees t_{i+1}.
     i = jnp.clip(jnp.searchsorted(t, s, side="right") - 1, 0, t.shape[0] - 1)
     return system.rate(y, u[i])
+
+
+def _linear_field(s, y, args):
+    system, t, u = args
+    i = jnp.clip(jnp.searchsorted(t, s, side="right") - 1, 0, t.shape[0] - 2)
+    w = (s - t[i]) / (t[i + 1] - t[i])
+    return system.rate(y, (1.0 - w) * u[i] + w * u[i + 1])
+
+
+INTERPOLATIONS = ("held", "linear", "bandlimited")
+UPSAMPLE = 8  # fine samples per step of a band-limited input, linear between them
+
+
+def check_interpolation(interpolation: str) -> str:
+    """The input's behaviour between samples: ``"held"`` (zero-order hold, a digital
+    controller's output), ``"linear"``, or ``"bandlimited"`` (an analogue signal sampled
+    below Nyquist, e.g. a multisine: reconstructed by :func:`upsample`; at a few samples
+    per period linear interpolation of such an input is a large error)."""
+    if interpolation not in INTERPOLATIONS:
+        raise DataError(f"input interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
+    return interpolation
+
+
+def upsample(u, factor: int = UPSAMPLE):
+    """Band-limited reconstruction of `u (N, n)` on a grid `factor` times finer,
+    `(factor (N - 1) + 1, n)`, passing through the samples: zero-padding of the spectrum of
+    the record extended by its mirror image (so its ends meet without a jump)."""
+    u = jnp.asarray(u)
+    N = u.shape[0]
+    ext = jnp.concatenate([u, u[-2:0:-1]])  # even extension, period 2N - 2
+    P = ext.shape[0]
+    spec = jnp.fft.rfft(ext, axis=0)
+    if P % 2 == 0:  # split the Nyquist bin between +-f so the result stays real and exact
+        spec = spec.at[-1].multiply(0.5)
+    fine = jnp.fft.irfft(spec, n=P * factor, axis=0) * factor
+    return fine[: (N - 1) * factor + 1]
 
 
 @eqx.filter_jit
@@ -165,11 +208,14 @@ def simulate(
     rtol: float = 1e-10,
     atol: float = 1e-12,
     max_steps: int | None = None,
+    interpolation: str | None = None,
 ) -> tuple[Float[Array, "N m"], Float[Array, "N m"]]:
-    """Integrate `dX/dt = system.rate(X, u(t))` with a zero-order-hold input.
+    """Integrate `dX/dt = system.rate(X, u(t))` under the sampled input `u`.
 
-    `u[i]` holds on `[t_i, t_{i+1})`. Every `t_i` is a jump time, so the adaptive
-    solver (Dopri8) never steps across an input discontinuity.
+    `interpolation="held"`: `u[i]` holds on `[t_i, t_{i+1})`; `"linear"`: `u` is
+    interpolated linearly between samples; `"bandlimited"`: reconstructed by
+    :func:`upsample`. None: the system's own (an updated twin's, from its data), else held. Every `t_i` is a jump time (of the input or of
+    its slope), so the adaptive solver (Dopri8) never steps across one.
 
     Returns `x (N, m)` at the times `t (N,)` and `xdot (N, m)`, where
     `xdot[i] = system.rate(x[i], u[i])` is what an ideal accelerometer reads.
@@ -184,27 +230,34 @@ def simulate(
         raise DataError(f"input u must have shape ({N}, n), got {u.shape}")
     if x0.ndim != 1:
         raise DataError(f"initial state x0 must have shape (m,), got {x0.shape}")
+    if interpolation is None:
+        interpolation = getattr(system, "interpolation", "held")
+    check_interpolation(interpolation)
     if max_steps is None:
         max_steps = 16 * N + 4096
+    tu = t
+    if interpolation == "bandlimited":  # linear between the fine samples
+        u = upsample(u)
+        tu = jnp.linspace(t[0], t[-1], u.shape[0])
     # The ends are not jumps inside [t_0, t_{N-1}]; passing them only adds tiny steps.
-    jump_ts = t[1:-1] if N > 2 else None
+    jump_ts = tu[1:-1] if tu.shape[0] > 2 else None
     controller = diffrax.ClipStepSizeController(
         diffrax.PIDController(rtol=rtol, atol=atol), jump_ts=jump_ts
     )
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(_vector_field),
+        diffrax.ODETerm(_held_field if interpolation == "held" else _linear_field),
         diffrax.Dopri8(),
         t0=t[0],
         t1=t[-1],
         dt0=None,
         y0=x0,
-        args=(system, t, u),
+        args=(system, tu, u),
         saveat=diffrax.SaveAt(ts=t),
         stepsize_controller=controller,
         max_steps=max_steps,
     )
     x = sol.ys
-    xdot = jax.vmap(system.rate)(x, u)
+    xdot = jax.vmap(system.rate)(x, u[:: UPSAMPLE] if interpolation == "bandlimited" else u)
     return x, xdot
 
 

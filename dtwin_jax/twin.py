@@ -25,11 +25,12 @@ from dtwin_jax import kramers_moyal, statespace, sampler
 from dtwin_jax.data import Records, check_records
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_library
-from dtwin_jax.denoise import auto_half_width, kinematic_smoother, savgol_states
+from dtwin_jax.denoise import auto_half_width, kinematic_smoother, savgol_design_ok, savgol_states
+from dtwin_jax.estimate import measured_index, state_smoother
 from dtwin_jax.measurement import smooth
 from dtwin_jax.posterior import EquationPosterior
 from dtwin_jax.predict import UpdatedTwin, diffusion_terms
-from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.systems import LinearSecondOrder, check_interpolation
 from dtwin_jax.checks import residual_checks
 from dtwin_jax.targets import equation_stats, input_output_targets, smoothed_input_output_stats
 
@@ -101,8 +102,9 @@ class UpdateResult:
         index = tuple(self.state_names.index(e.state) for e in drift)
         coef = np.stack([e.coefficients for e in drift]) if drift else np.zeros((0, self.library.K))
         diffusion = [e for e in self.equations if e.kind == "diffusion"]
+        interpolation = self.preprocessing.get("input_interpolation", "held")
         if not diffusion:
-            return UpdatedTwin(self.nominal, self.library, index, jnp.asarray(coef))
+            return UpdatedTwin(self.nominal, self.library, index, jnp.asarray(coef), interpolation=interpolation)
         dcoef = np.stack([e.coefficients for e in diffusion])
         return UpdatedTwin(self.nominal, self.library, index, jnp.asarray(coef), *diffusion_terms(self, dcoef))
 
@@ -227,8 +229,8 @@ def _check_previous(previous, mode: str, nominal: LinearSecondOrder, lib: Librar
     if previous.library.names != lib.names:
         raise DataError(f"re-update needs the previous library '{previous.library.spec}', got '{lib.spec}'")
     same = all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in zip(
-        (previous.nominal.M, previous.nominal.C, previous.nominal.K, previous.nominal.B),
-        (nominal.M, nominal.C, nominal.K, nominal.B)))
+        (previous.nominal.M, previous.nominal.C, previous.nominal.K, previous.nominal.B, previous.nominal.F0),
+        (nominal.M, nominal.C, nominal.K, nominal.B, nominal.F0)))
     if not same or previous.nominal.extra_states != nominal.extra_states:
         raise DataError("re-update needs the previous update's nominal model")
 
@@ -306,6 +308,9 @@ def update_input_output(
     u,
     xdot=None,
     *,
+    x_names=None,
+    xdot_names=None,
+    interpolation: str = "held",
     library: str | Library | None = None,
     smoothing="auto",
     pip_threshold: float = 0.5,
@@ -317,33 +322,62 @@ def update_input_output(
 ) -> UpdateResult:
     """Discover the perturbation of ``nominal`` from input-output measurements.
 
-    ``t (N,)`` s; ``x (N, m)`` or ``(R, N, m)`` measured states; ``u (N, n)`` or
-    ``(R, N, n)`` measured inputs (piecewise constant over each step); ``xdot`` measured rates
-    of the same shape as ``x`` (accelerometers), or None to estimate the rates from ``x`` by
-    a Savitzky-Golay derivative. ``library`` is a spec (formats.md) or a :class:`Library`.
+    ``t (N,)`` s; ``x (N, p)`` or ``(R, N, p)`` measured states, named ``x_names`` (default
+    all ``m`` in order); ``u (N, n)`` or ``(R, N, n)`` measured inputs, held over each step
+    or interpolated linearly (``interpolation``); ``xdot`` measured rates of the states
+    ``xdot_names`` (accelerometers), or None. With every state measured the rates come from
+    the kinematic smoother (rates measured) or a Savitzky-Golay derivative; with some states
+    unmeasured, or when the Savitzky-Golay design cannot be met (a few samples per period), or
+    with ``smoothing="statespace"``, every state and rate comes from the state-space smoother
+    of :mod:`dtwin_jax.estimate`. ``library`` is a spec (formats.md) or a :class:`Library`.
     ``previous``: an earlier update of the same twin (same nominal model and library) whose
     posterior is the prior of this one (its statistics, times ``forget``, are added to the
     new window's); the result's history continues the previous one.
     """
     start = time.perf_counter()
-    rec = check_records(t, x, u, xdot, nominal)
+    check_interpolation(interpolation)
+    x_index = measured_index(x_names, nominal)
+    xdot_index = measured_index(xdot_names, nominal, "xdot_names") if xdot is not None else ()
+    rec = check_records(t, x, u, xdot, nominal, x_columns=len(x_index), xdot_columns=len(xdot_index) or None)
     if rec.u is None:
         raise DataError("input-output update needs measured inputs 'u'")
     lib = _library(library, nominal, nominal.n)
     _check_previous(previous, "input-output", nominal, lib, forget)
     hw = auto_half_width(nominal, rec.dt, rec.t.size)
-    xs, smoothing_info = denoise_states(rec, nominal, smoothing)
-    if rec.xdot is not None:
-        rates = rec.xdot
-        rate_source = "measured"
+    every = tuple(range(nominal.m))
+    partial = x_index != every or (rec.xdot is not None and xdot_index != every)
+    warnings = []
+    if smoothing == "auto" and rec.xdot is None and not savgol_design_ok(nominal, rec.dt):
+        warnings.append(
+            "Savitzky-Golay filters cannot reach 8x the highest natural frequency below Nyquist "
+            f"({1 / rec.dt:.4g} Hz sampling): rates from the state-space smoother instead"
+        )
+        smoothing = "statespace"
+    elif smoothing == "savgol" and not savgol_design_ok(nominal, rec.dt):
+        warnings.append("Savitzky-Golay filters cannot reach 8x the highest natural frequency below "
+                        "Nyquist: rate estimates biased (smoothing='statespace' avoids this)")
+    if partial or smoothing == "statespace":
+        xs, rates, smoothing_info = state_smoother(
+            nominal, rec.dt, rec.x, x_index, rec.u, rec.xdot, xdot_index, interpolation=interpolation
+        )
+        rate_source = "state-space smoother"
+        correct = False
     else:
-        rates = np.asarray(smooth(rec.x, hw, order=4, deriv=1, dt=rec.dt))
-        rate_source = f"savitzky-golay derivative (order 4, half width {hw})"
-    R, N, m = rec.x.shape
+        xs, smoothing_info = denoise_states(rec, nominal, smoothing)
+        if rec.xdot is not None:
+            rates = rec.xdot
+            rate_source = "measured"
+        else:
+            rates = np.asarray(smooth(rec.x, hw, order=4, deriv=1, dt=rec.dt))
+            rate_source = f"savitzky-golay derivative (order 4, half width {hw})"
+        correct = rec.xdot is not None and smoothing is not None
+    R, N, m = xs.shape
     check_columns(np.asarray(lib(xs.reshape(R * N, m), rec.u.reshape(R * N, -1))), lib.names)
     # The same jitted chain as the batched studies (dtwin_jax.studies).
-    correct = rec.xdot is not None and smoothing is not None
     stats, noise_var = smoothed_input_output_stats(nominal, lib, xs, rec.u, rates, hw, correct_inputs=correct)
+    n_eff = None
+    if rate_source == "state-space smoother":
+        stats, n_eff = _autocorrelation_corrected(stats, nominal, lib, xs, rec.u, rates)
     stats = _with_previous(stats, "drift", previous, forget)
     trace = _sample_equations(stats, settings, seed, progress)
     trace = jax.tree.map(np.asarray, trace)
@@ -360,6 +394,8 @@ def update_input_output(
         e.state: residual_checks(residual[j], xs, nominal.velocity_index, names)
         for j, e in enumerate(equations)
     }
+    if warnings:
+        checks["preprocessing"] = {"ok": False, "warnings": warnings}
     return UpdateResult(
         mode="input-output",
         nominal=nominal,
@@ -372,13 +408,42 @@ def update_input_output(
             "state_smoothing": smoothing_info,
             "smoothing": smoothing,
             "rates": rate_source,
+            "measured_states": [names[i] for i in x_index],
+            "measured_rates": [names[i] for i in xdot_index],
+            "input_interpolation": interpolation,
             "input_noise_std": None if noise_var is None else np.sqrt(noise_var).tolist(),
             "samples": int(R * N),
+            "effective_samples": None if n_eff is None else n_eff.tolist(),
         },
         checks=checks,
         statistics={"drift": _numpy_stats(stats)},
         history=_history(previous, "input-output", rec, forget, equations, time.perf_counter() - start),
     )
+
+
+def _autocorrelation_corrected(stats, nominal, lib, xs, u, rates) -> tuple[sampler.SuffStats, np.ndarray]:
+    """Statistics scaled to the residuals' effective sample size `(q,)`.
+
+    A smoother's rate estimates are smooth in time, so the regression residuals (model
+    mismatch, estimation error) are autocorrelated, and counting every sample as independent
+    makes the posterior too narrow and every small systematic term "certain" (on the
+    Silverbox: 0.8% posterior std of the cubic stiffness where windows differ by 4%, and
+    velocity cross-terms at PIP 1). The residuals of a least-squares fit on the whole
+    library give the effective size (arviz's ESS, summed over records); scaling the
+    statistics by `n_eff / n` keeps their estimates and widens the posterior to match."""
+    import arviz as az
+
+    R, N, m = xs.shape
+    x, uu = jnp.asarray(xs).reshape(R * N, m), jnp.asarray(u).reshape(R * N, -1)
+    Y = np.asarray(input_output_targets(nominal, x, uu, jnp.asarray(rates).reshape(R * N, m)))
+    L = np.asarray(lib(x, uu))
+    coef, *_ = np.linalg.lstsq(L / np.linalg.norm(L, axis=0), Y, rcond=None)
+    residual = (Y - (L / np.linalg.norm(L, axis=0)) @ coef).T.reshape(-1, R, N)
+    n_eff = np.array([sum(float(az.ess(r[None], method="mean")) for r in eq) for eq in residual])
+    scale = jnp.asarray(np.minimum(n_eff / (R * N), 1.0))
+    scaled = sampler.SuffStats(stats.gram * scale[:, None, None], stats.xty * scale[:, None], stats.yty * scale,
+                               stats.n * scale)
+    return scaled, n_eff
 
 
 def _input_output_residuals(nominal, lib, xs, u, rates, equations) -> np.ndarray:
@@ -431,6 +496,8 @@ def update_output_only(
     """
     start = time.perf_counter()
     rec = check_records(t, x, None, None, nominal)
+    if np.any(np.asarray(nominal.F0) != 0):
+        raise DataError("output-only updates do not take a nominal F0 yet: set it to zero and keep the constant term '1' in the library")
     lib = _output_only_library(library, nominal, OUTPUT_ONLY_LIBRARY)
     dlib = _output_only_library(diffusion_library, nominal, DIFFUSION_LIBRARY)
     _check_previous(previous, "output-only", nominal, lib, forget)

@@ -87,12 +87,22 @@ def test_example2_output_only_at_5_percent_noise():
     assert max(errors[(s, "sigma")] for s in ("x3", "x4")) < 0.03, errors
     pre = result.preprocessing
     assert abs(np.sqrt(pre["diffusion_pilot"][0] / 0.25) - 1) > 0.3  # what the likelihood fixes
+    # The mean needs few draws; example 1's test covers the save/load round trip. Measured:
+    # 0.5/0.3/0.9/0.4% (nominal 136/144/127/134%), 95-97% inside the band.
+    check_output_only_prediction(ex, result, tol=0.02, mean_draws=30, round_trip=False)
 
 
 def test_example3_output_only_at_5_percent_noise():
     ex, t, x = _ensemble("example3")
     result = update_output_only(ex.system.nominal, t, x, library=ex.library_output_only, settings=FAST)
     _check(result, ex, drift_tol=0.04, sigma_tol=0.07)
+    # The damage x3 is nearly deterministic and its band is the parameter uncertainty
+    # (x3: 0.0101(4) x2**2): the truth inside it, not 90-99% of the time. Its mean needs
+    # more draws: x3's level is 6x its std over the 10 s, so 1% on the damage rate's draws
+    # is 6% of NRMSE (100 draws: 0.3-8.6% by key). Measured (300): 2.0/1.8/3.9% (nominal
+    # 118/131/637%), 97/97/100% inside the band.
+    check_output_only_prediction(ex, result, tol=(0.03, 0.03, 0.08), mean_draws=300, band_states=(0, 1),
+                                 round_trip=False)
 
 
 def test_example1_output_only_at_20_percent_noise_keeps_the_support():

@@ -1,0 +1,139 @@
+"""The Silverbox benchmark (an electronic Duffing oscillator, measured): update on the
+multisine part, simulate in free run on the "arrow" part, report the RMS error in mV.
+
+    python examples/silverbox.py [--data data/silverbox/SNLS80mV.csv]
+                                 [--draws 30] [--figure docs/silverbox.png] [--out result.json]
+
+From V1 (input, V) and V2 (output, V) alone: the output is the displacement `x1` (the only
+measured state, `x_names = ["x1"]`), the input a band-limited multisine. The nominal linear
+model is identified from the same data (:func:`dtwin_jax.estimate.identify_linear`); the
+update uses default settings (sampler, smoothing: at ~9 samples per resonance period the
+velocity and acceleration come from the state-space smoother) and the library `poly:3,input`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from dtwin_jax import posterior_twins, predict, simulate, update_input_output
+from dtwin_jax.estimate import identify_linear
+
+FS = 1e7 / 2**14  # Hz
+DATA = Path(__file__).resolve().parents[1] / "data" / "silverbox" / "SNLS80mV.csv"  # provenance: its README
+ESTIMATION = slice(40496, 127414)  # every multisine realization (pauses included)
+ARROW = slice(0, 40000)  # the standard free-run test
+
+
+def load(path):
+    """`(u, y)` in V from the SNLS80mV csv (header `V1,V2`)."""
+    table = np.loadtxt(path, delimiter=",", skiprows=1)
+    return table[:, 0], table[:, 1]
+
+
+# The paper's default library (poly:6 and friends) selects 23 terms here, fifth- and
+# sixth-degree velocity terms among them, and its twin cannot be integrated past the training
+# amplitude: a library of the physics' degree is the setting this record needs.
+LIBRARY = "poly:3,input"
+
+
+def run(path, *, draws: int = 30, estimation=ESTIMATION, seed: int = 0, settings=None, library=LIBRARY) -> dict:
+    """Identify, update and predict; returns the measured errors and the prediction."""
+    u, y = load(path)
+    dt = 1.0 / FS
+    ue, ye = u[estimation, None], y[estimation, None]
+    t = np.arange(ye.shape[0]) * dt
+    start = time.perf_counter()
+    nominal = identify_linear(t, ye, ue, ["x1"], interpolation="bandlimited")
+    identify_s = time.perf_counter() - start
+    kwargs = {} if settings is None else {"settings": settings}
+    result = update_input_output(nominal, t, ye, ue, x_names=["x1"], interpolation="bandlimited", seed=seed,
+                                 library=library, **kwargs)
+    ta = np.arange(ARROW.stop - ARROW.start) * dt
+    ua, ya = u[ARROW, None], y[ARROW]
+    x0 = np.zeros(2)
+    linear = np.asarray(simulate(nominal, x0, ta, ua, interpolation="bandlimited")[0][:, 0])
+    twins = posterior_twins(result, draws, jax.random.key(seed))
+    pred = predict(twins, x0, ta, ua)
+    mean, lower, upper = (np.asarray(pred[k][:, 0]) for k in ("mean", "lower", "upper"))
+    inside_range = (ya >= ye.min()) & (ya <= ye.max())
+    within = slice(0, int(np.flatnonzero(~inside_range)[0]) if not inside_range.all() else ya.size)
+
+    def rms(a, part=slice(None)):
+        return float(1e3 * np.sqrt(np.mean((a[part] - ya[part]) ** 2)))
+
+    return {
+        "result": result,
+        "nominal": nominal,
+        "t": ta,
+        "measured": ya,
+        "linear": linear,
+        "mean": mean,
+        "lower": lower,
+        "upper": upper,
+        "rms_mV": {"twin": rms(mean), "linear": rms(linear),
+                   "twin_within_training_range": rms(mean, within),
+                   "linear_within_training_range": rms(linear, within)},
+        "within_training_range_samples": within.stop,
+        "band_coverage": float(np.mean((ya >= lower) & (ya <= upper))),
+        "band_width_mV": float(1e3 * np.mean(upper - lower)),
+        "seconds": {"identify": identify_s, "update": result.seconds},
+    }
+
+
+def figure(out: dict, path) -> None:
+    """Measured against predicted on the arrow part, and the error over time."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 5.5), layout="constrained")
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
+    t, y = out["t"], out["measured"]
+    ax1.plot(t, y, color="0.6", lw=0.6, label="measured V2")
+    ax1.plot(t, out["mean"], color="C0", lw=0.4, label="updated twin (mean)")
+    ax1.set_ylabel("V2 (V)")
+    ax1.legend(loc="upper left", fontsize=8)
+    ax1.set_title(f"Silverbox arrow, free run: twin {out['rms_mV']['twin']:.2f} mV RMS, "
+                  f"identified linear model {out['rms_mV']['linear']:.1f} mV")
+    ax2.plot(t, 1e3 * (out["linear"] - y), color="C3", lw=0.4, label="linear model error")
+    ax2.fill_between(t, 1e3 * (out["lower"] - y), 1e3 * (out["upper"] - y), color="C0", alpha=0.3,
+                     lw=0, label="twin 95% band - measured")
+    ax2.plot(t, 1e3 * (out["mean"] - y), color="C0", lw=0.4, label="twin error")
+    ax2.axvline(t[out["within_training_range_samples"] - 1], color="k", lw=0.6, ls="--")
+    ax2.set_ylim(-12, 12)
+    ax2.set_xlabel("time (s)")
+    ax2.set_ylabel("error (mV)")
+    ax2.legend(loc="lower left", fontsize=8, ncol=3)
+    fig.savefig(path, dpi=130)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", default=str(DATA))
+    p.add_argument("--draws", type=int, default=30, help="posterior twins in the band")
+    p.add_argument("--figure", default="docs/silverbox.png")
+    p.add_argument("--library", default=LIBRARY, help=f"library spec (default {LIBRARY})")
+    p.add_argument("--out", default=None, help="write the result JSON here")
+    args = p.parse_args()
+    out = run(args.data, draws=args.draws, library=args.library)
+    result = out["result"]
+    print(result.summary())
+    for w in result.warnings():
+        print("warning:", w)
+    print("nominal (identified): K", float(out["nominal"].K[0, 0]), "C", float(out["nominal"].C[0, 0]),
+          "B", float(out["nominal"].B[0, 0]), "F0", float(out["nominal"].F0[0]))
+    print(json.dumps({k: out[k] for k in ("rms_mV", "within_training_range_samples", "band_coverage",
+                                          "band_width_mV", "seconds")}, indent=1))
+    figure(out, args.figure)
+    if args.out:
+        from dtwin_jax.io import write_json
+
+        write_json(args.out, result.to_json())
+
+
+if __name__ == "__main__":
+    main()
