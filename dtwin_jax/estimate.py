@@ -161,7 +161,7 @@ def _pieces(a, length: int, fine: int = 1):
 @functools.partial(jax.jit, static_argnames=("iterations",))
 def _fit_noise(model: _Model, z, u, iterations: int = 20):
     """Maximum-likelihood measurement variances `(p,)` and disturbance intensities `(r,)`
-    of records `z (R, N, p)` under inputs `u (R, N, n+1)`: a coarse scan of a common
+    of records `z (R, N, p)` under inputs `u (R, L (N-1) + 1, n+1)` (fine grid): a coarse scan of a common
     intensity factor, then Newton steps in the logs (clipped to a factor e, the best of four
     step lengths). Pieces of the records are filtered side by side."""
     zp, up = _pieces(z, _SEGMENT), _pieces(u, _SEGMENT, model.W.shape[0] - 1)

@@ -30,8 +30,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import cho_factor, cho_solve
 
+from dtwin_jax.kalman import Filtered, rts_smoother
 from dtwin_jax.library import Library, parse_library
 from dtwin_jax.systems import LinearSecondOrder
 
@@ -208,20 +208,9 @@ def smoother(lin: Linearization, y, gamma, noise_var) -> Smoothed:
     """Kalman filter and RTS smoother of `y (N, m)` under `X_{k+1} = F(X_k) + N(0, Q_k)`,
     `F` linearized by `lin`, `Q_k = sum_v gamma_v lin.unit_cov[k, v]`,
     `y_k = X_k + N(0, diag(noise_var (m,)))`."""
-    mf, Pf, mp, Pp, ll = _filter(lin, y, gamma, noise_var)
-
-    def backward(carry, inputs):
-        ms1, Ps1 = carry
-        mk, Pk, mpk, Ppk, Jk = inputs
-        G = cho_solve(cho_factor(Ppk, lower=True), Jk @ Pk).T  # Pk J^T Pp^-1
-        ms = mk + G @ (ms1 - mpk)
-        Ps = Pk + G @ (Ps1 - Ppk) @ G.T
-        return (ms, Ps), (ms, Ps, Ps1 @ G.T)
-
-    _, (ms, Ps, C) = jax.lax.scan(
-        backward, (mf[-1], Pf[-1]), (mf[:-1], Pf[:-1], mp, Pp, lin.jac), reverse=True
-    )
-    return Smoothed(jnp.concatenate([ms, mf[-1:]]), jnp.concatenate([Ps, Pf[-1:]]), C, ll)
+    filtered = Filtered(*_filter(lin, y, gamma, noise_var))
+    mean, cov, cross = rts_smoother(filtered, lin.jac)
+    return Smoothed(mean, cov, cross, filtered.loglik)
 
 
 def segments(x, length: int = 1000):
