@@ -15,7 +15,7 @@ from dtwin_jax.library import DEFAULT_LIBRARY, Library, parse_library  # noqa: E
 from dtwin_jax.measurement import measure  # noqa: E402
 from dtwin_jax.systems import LinearSecondOrder, PerturbedSystem, simulate  # noqa: E402
 from dtwin_jax.predict import UpdatedTwin, posterior_twins, predict, simulation_error  # noqa: E402
-from dtwin_jax.twin import (  # noqa: E402
+from dtwin_jax.update import (  # noqa: E402
     SamplerSettings,
     UpdateResult,
     update_input_output,

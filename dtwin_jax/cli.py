@@ -131,7 +131,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _settings(args):
-    from dtwin_jax.twin import SamplerSettings
+    from dtwin_jax.update import SamplerSettings
 
     return SamplerSettings(num_chains=args.chains, num_draws=args.draws, num_burnin=args.burn_in)
 
@@ -164,7 +164,7 @@ def _discover(args) -> int:
 
 
 def _update(args, mode, nominal, data, *, library, diffusion_library=None, previous=None, forget=1.0):
-    from dtwin_jax.twin import update_input_output, update_output_only
+    from dtwin_jax.update import update_input_output, update_output_only
 
     common = dict(pip_threshold=args.pip_threshold, settings=_settings(args), seed=args.seed,
                   progress=not args.quiet, previous=previous, forget=forget)
@@ -249,7 +249,7 @@ def _demo(args) -> int:
 
     from dtwin_jax import systems
     from dtwin_jax.measurement import measure
-    from dtwin_jax.twin import update_input_output
+    from dtwin_jax.update import update_input_output
 
     _check_threshold(args.pip_threshold)
     if not 0.0 <= args.noise <= 1.0:
@@ -282,7 +282,7 @@ def _demo_output_only(args, ex, say) -> int:
 
     from dtwin_jax import systems
     from dtwin_jax.measurement import add_noise
-    from dtwin_jax.twin import update_output_only
+    from dtwin_jax.update import update_output_only
 
     ex = ex.for_output_only()
     say(f"[1/3] simulating {ex.name} under Brownian forcing: {args.records} records of "

@@ -23,6 +23,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from dtwin_jax.kalman import kalman_filter, newton_log_variances, rts_smoother
 from dtwin_jax.measurement import (
     highest_natural_frequency_hz,
     savgol_coefficients,
@@ -67,80 +68,39 @@ def savgol_states(x, half_width: int):
     return smooth(x, half_width, _ORDER)
 
 
-def _forward(z, w, F, G, Q, r_diag):
-    """Kalman filter for ``s_{k+1} = F s_k + G w_k + noise(Q)``, ``z_k = s_k + noise(r_diag)``.
+def _filter(z, w, F, G, Q, r_diag):
+    """Kalman filter (:func:`kalman.kalman_filter`) of the kinematic chain
+    ``s_{k+1} = F s_k + G w_k + noise(Q)``, ``z_k = s_k + noise(r_diag)``: ``z (N, p)``
+    measured states, ``w (N-1, p)`` known inputs, ``r_diag (p,)`` measurement variances.
 
-    ``z (N, p)`` measured states, ``w (N-1, p)`` known inputs, ``r_diag (p,)`` measurement
-    variances. Returns filtered means and covariances ``(N, p)``, ``(N, p, p)``, the
-    predictions ``(N-1, p)``, ``(N-1, p, p)`` and the log-likelihood of ``z_1..z_{N-1}``
-    given ``z_0``.
+    The first sample under a prior of the measurement itself with ``1e6`` times its noise,
+    updated by it in closed form (``s_0 = z_0``, ``P_0 = R 1e6 / (1e6 + 1)``), and left out of
+    the likelihood, which is that of ``z_1..z_{N-1}`` given ``z_0``.
     """
-    p = z.shape[1]
-    R = jnp.diag(r_diag)
-    eye = jnp.eye(p, dtype=z.dtype)
-
-    def update(s, P, zk):
-        S = P + R
-        K = jnp.linalg.solve(S, P).T  # P (P + R)^-1, both symmetric
-        r = zk - s
-        ll = -0.5 * (r @ jnp.linalg.solve(S, r) + jnp.linalg.slogdet(S)[1] + p * jnp.log(2 * jnp.pi))
-        IK = eye - K
-        return s + K @ r, IK @ P @ IK.T + K @ R @ K.T, ll  # Joseph form
-
-    s0, P0, _ = update(z[0], R * 1e6, z[0])
-
-    def step(carry, inputs):
-        s, P = carry
-        wk, zk = inputs
-        sp = F @ s + G @ wk
-        Pp = F @ P @ F.T + Q
-        s, P, ll = update(sp, Pp, zk)
-        return (s, P), (s, P, sp, Pp, ll)
-
-    _, (sf, Pf, sp, Pp, ll) = jax.lax.scan(step, (s0, P0), (w, z[1:]))
-    return jnp.concatenate([s0[None], sf]), jnp.concatenate([P0[None], Pf]), sp, Pp, jnp.sum(ll)
+    P0 = jnp.diag(r_diag * (1e6 / (1e6 + 1.0)))
+    return kalman_filter(F, w @ G.T, Q, None, None, r_diag, z, z[0], P0, update_first=False)
 
 
 def _rts(z, w, F, G, Q, r_diag):
-    """RTS smoother of the model of :func:`_forward`: smoothed states ``(N, p)``."""
-    sf, Pf, sp, Pp, _ = _forward(z, w, F, G, Q, r_diag)
-
-    def backward(s_next, inputs):
-        s, P, sp_next, Pp_next = inputs
-        C = jnp.linalg.solve(Pp_next, F @ P).T  # P F^T Pp^-1
-        s = s + C @ (s_next - sp_next)
-        return s, s
-
-    _, sb = jax.lax.scan(backward, sf[-1], (sf[:-1], Pf[:-1], sp, Pp), reverse=True)
-    return jnp.concatenate([sb, sf[-1:]])
+    """RTS smoother of the model of :func:`_filter`: smoothed states ``(N, p)``."""
+    return rts_smoother(_filter(z, w, F, G, Q, r_diag), F)[0]
 
 
 def _fit_noise(z, w, F, G, Q_unit, r0, q0, iterations: int = 10):
     """Maximum-likelihood measurement variances ``(p,)`` and process-noise scale ``()`` of
-    the model of :func:`_forward` with ``Q = q Q_unit``, from first guesses ``r0``, ``q0``.
+    the model of :func:`_filter` with ``Q = q Q_unit``, from first guesses ``r0``, ``q0``.
 
-    Newton steps in the log-variances (clipped to a factor e per step, the best of four
-    step lengths kept); fixed iterations, so it jits and vmaps. Floors at 1e-10 of the
-    guesses keep a noise-free signal finite.
+    Newton steps in the log-variances (:func:`kalman.newton_log_variances`); fixed
+    iterations, so it jits and vmaps. Floors at 1e-10 of the guesses keep a noise-free
+    signal finite.
     """
     floor = jnp.log(jnp.concatenate([r0, q0[None]]) * 1e-10 + 1e-300)
 
     def loglik(params):
-        return _forward(z, w, F, G, jnp.exp(params[-1]) * Q_unit, jnp.exp(params[:-1]))[-1]
-
-    def newton(_, params):
-        g = jax.grad(loglik)(params)
-        H = jax.hessian(loglik)(params)
-        concave = jnp.all(jnp.linalg.eigvalsh(H) < 0)
-        safe = jnp.where(concave, H, -jnp.eye(H.shape[0]) * jnp.maximum(jnp.max(jnp.abs(H)), 1.0))
-        delta = jnp.clip(-jnp.linalg.solve(safe, g), -1.0, 1.0)
-        trials = params[None] + jnp.array([1.0, 0.5, 0.25, 0.0])[:, None] * delta[None]
-        trials = jnp.maximum(trials, floor)
-        values = jax.vmap(loglik)(trials)
-        return trials[jnp.argmax(jnp.where(jnp.isfinite(values), values, -jnp.inf))]
+        return _filter(z, w, F, G, jnp.exp(params[-1]) * Q_unit, jnp.exp(params[:-1])).loglik
 
     params = jnp.log(jnp.maximum(jnp.concatenate([r0, q0[None]]), 1e-300))
-    params = jax.lax.fori_loop(0, iterations, newton, params)
+    params = newton_log_variances(loglik, params, floor, iterations)
     return jnp.exp(params[:-1]), jnp.exp(params[-1])
 
 

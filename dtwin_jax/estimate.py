@@ -30,7 +30,7 @@ import numpy as np
 from jax.scipy.linalg import expm
 
 from dtwin_jax.errors import DataError
-from dtwin_jax.kalman import kalman_filter, rts_smoother
+from dtwin_jax.kalman import kalman_filter, newton_log_variances, rts_smoother
 from dtwin_jax.systems import UPSAMPLE, LinearSecondOrder, check_interpolation, upsample
 
 __all__ = ["measured_index", "discretize", "state_smoother", "identify_linear"]
@@ -162,8 +162,8 @@ def _pieces(a, length: int, fine: int = 1):
 def _fit_noise(model: _Model, z, u, iterations: int = 20):
     """Maximum-likelihood measurement variances `(p,)` and disturbance intensities `(r,)`
     of records `z (R, N, p)` under inputs `u (R, L (N-1) + 1, n+1)` (fine grid): a coarse scan of a common
-    intensity factor, then Newton steps in the logs (clipped to a factor e, the best of four
-    step lengths). Pieces of the records are filtered side by side."""
+    intensity factor, then Newton steps in the logs (:func:`kalman.newton_log_variances`).
+    Pieces of the records are filtered side by side."""
     zp, up = _pieces(z, _SEGMENT), _pieces(u, _SEGMENT, model.W.shape[0] - 1)
     var_z = jnp.var(z.reshape(-1, z.shape[-1]), axis=0)
     p = z.shape[-1]
@@ -187,17 +187,7 @@ def _fit_noise(model: _Model, z, u, iterations: int = 20):
     params = base.at[p:].add(factors[jnp.argmax(jnp.where(jnp.isfinite(trial), trial, -jnp.inf))])
     floor = jnp.concatenate([jnp.log(r_floor), jnp.full(q0.shape, -700.0)])
 
-    def newton(_, params):
-        g = jax.grad(loglik)(params)
-        Hs = jax.hessian(loglik)(params)
-        concave = jnp.all(jnp.linalg.eigvalsh(Hs) < 0)
-        safe = jnp.where(concave, Hs, -jnp.eye(Hs.shape[0]) * jnp.maximum(jnp.max(jnp.abs(Hs)), 1.0))
-        delta = jnp.clip(-jnp.linalg.solve(safe, g), -1.0, 1.0)
-        trials = jnp.maximum(params[None] + jnp.array([1.0, 0.5, 0.25, 0.0])[:, None] * delta[None], floor)
-        values = jax.vmap(loglik)(trials)
-        return trials[jnp.argmax(jnp.where(jnp.isfinite(values), values, -jnp.inf))]
-
-    params = jax.lax.fori_loop(0, iterations, newton, params)
+    params = newton_log_variances(loglik, params, floor, iterations)
     return jnp.exp(params[:p]), jnp.exp(params[p:])
 
 

@@ -1,4 +1,5 @@
-"""One linear-Gaussian Kalman filter and Rauch-Tung-Striebel smoother.
+"""The one linear-Gaussian Kalman filter and Rauch-Tung-Striebel smoother of the package,
+and the Newton fit of noise variances by their likelihood.
 
     s_{k+1} = F_k s_k + c_k + N(0, Q_k),      z_k = H s_k + e_k + N(0, diag(r)),
 
@@ -6,17 +7,19 @@ states `s (S,)`, measurements `z (p,)`. `F`, `c`, `Q` may be one array for every
 one per step (a leading axis `N-1`); `e` one per sample. The measurement noise is
 independent across channels (`r` diagonal), so the update takes one channel at a time:
 scalar innovations, no matrix factorisation, several times faster batched on a CPU.
+Users: the partial-state smoother (:mod:`dtwin_jax.estimate`), the kinematic smoother
+(:mod:`dtwin_jax.denoise`) and the diffusion likelihood (:mod:`dtwin_jax.statespace`).
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import cho_factor, cho_solve
 
-__all__ = ["Filtered", "kalman_filter", "rts_smoother"]
+__all__ = ["Filtered", "kalman_filter", "rts_smoother", "newton_log_variances"]
 
 
 class Filtered(NamedTuple):
@@ -26,7 +29,7 @@ class Filtered(NamedTuple):
     cov: jax.Array  # (N, S, S)
     pred_mean: jax.Array  # (N-1, S) one-step predictions of samples 1..N-1
     pred_cov: jax.Array  # (N-1, S, S)
-    loglik: jax.Array  # () log p(z_0..z_{N-1}) given the prior of s_0
+    loglik: jax.Array  # () log p(z_0..z_{N-1}), or of z_1.. given z_0 (update_first=False)
 
 
 def _steps(a, N: int, ndim: int):
@@ -37,34 +40,47 @@ def _steps(a, N: int, ndim: int):
 
 def _update(m, P, z, H, r):
     ll = 0.0
-    for i in range(H.shape[0]):  # static: one scalar update per channel
-        col = P @ H[i]
-        S = H[i] @ col + r[i]
-        res = z[i] - H[i] @ m
+    for i in range(r.shape[0]):  # static: one scalar update per channel
+        # H None: channel i measures state i; slicing skips products with a unit row.
+        col = P[:, i] if H is None else P @ H[i]
+        S = (col[i] if H is None else H[i] @ col) + r[i]
+        res = z[i] - (m[i] if H is None else H[i] @ m)
         m = m + col * (res / S)
         P = P - jnp.outer(col, col) / S
         ll = ll - 0.5 * (res * res / S + jnp.log(S) + jnp.log(2 * jnp.pi))
     return m, 0.5 * (P + P.T), ll
 
 
-def kalman_filter(F, c, Q, H, e, r, z, m0, P0) -> Filtered:
-    """Filter `z (N, p)`: `F (S, S)` or `(N-1, S, S)`, `c (S,)` or `(N-1, S)`, `Q` like `F`,
-    `H (p, S)`, `e (N, p)` known measurement offsets, `r (p,)` noise variances, prior
-    `m0 (S,)`, `P0 (S, S)` of `s_0`. Pure; jit, vmap and differentiate freely."""
+def kalman_filter(F, c, Q, H, e, r, z, m0, P0, *, update_first: bool = True) -> Filtered:
+    """Filter `z (N, p)`: `F (S, S)` or `(N-1, S, S)`, `c (S,)` or `(N-1, S)`, `Q` like `F`
+    or a pair `(w (d,), Q_unit (d, S, S) or (N-1, d, S, S))` for `Q_k = sum_v w_v Q_unit[k, v]`,
+    `H (p, S)` (None: `p = S` states measured directly), `e (N, p)` known measurement
+    offsets (None: zero), `r (p,)` noise variances, prior `m0 (S,)`, `P0 (S, S)` of `s_0`.
+    `update_first=False`: `m0, P0` already condition on `z_0` (a filter started at the
+    first measurement), which then enters neither the update nor the likelihood.
+    Pure; jit, vmap and differentiate freely."""
     z = jnp.asarray(z)
     N = z.shape[0]
-    H, r, e = jnp.asarray(H), jnp.asarray(r), jnp.asarray(e)
-    y = z - e
-    mf0, Pf0, ll0 = _update(jnp.asarray(m0), jnp.asarray(P0), y[0], H, r)
+    r = jnp.asarray(r)
+    H = None if H is None else jnp.asarray(H)
+    y = z if e is None else z - jnp.asarray(e)
+    m0, P0 = jnp.asarray(m0), jnp.asarray(P0)
+    mf0, Pf0, ll0 = _update(m0, P0, y[0], H, r) if update_first else (m0, P0, 0.0)
+
+    # Q as weights of unit covariances is summed inside the loop: a per-step Q array built
+    # outside would be materialized with its tangents when differentiated in the weights
+    # (the diffusion likelihood's Hessian: 20% slower).
+    w, Q = (jnp.asarray(Q[0]), _steps(Q[1], N, 3)) if isinstance(Q, tuple) else (None, _steps(Q, N, 2))
 
     def step(carry, inputs):
         m, P = carry
         Fk, ck, Qk, yk = inputs
+        Qk = Qk if w is None else jnp.einsum("v,vij->ij", w, Qk)
         mp, Pp = Fk @ m + ck, Fk @ P @ Fk.T + Qk
         mn, Pn, ll = _update(mp, Pp, yk, H, r)
         return (mn, Pn), (mn, Pn, mp, Pp, ll)
 
-    inputs = (_steps(F, N, 2), _steps(c, N, 1), _steps(Q, N, 2), y[1:])
+    inputs = (_steps(F, N, 2), _steps(c, N, 1), Q, y[1:])
     _, (mf, Pf, mp, Pp, ll) = jax.lax.scan(step, (mf0, Pf0), inputs)
     return Filtered(
         jnp.concatenate([mf0[None], mf]), jnp.concatenate([Pf0[None], Pf]), mp, Pp, ll0 + jnp.sum(ll)
@@ -88,3 +104,24 @@ def rts_smoother(filtered: Filtered, F) -> tuple[jax.Array, jax.Array, jax.Array
     inputs = (mf[:-1], Pf[:-1], mp, Pp, _steps(F, N, 2))
     _, (ms, Ps, C) = jax.lax.scan(backward, (mf[-1], Pf[-1]), inputs, reverse=True)
     return jnp.concatenate([ms, mf[-1:]]), jnp.concatenate([Ps, Pf[-1:]]), C
+
+
+def newton_log_variances(loglik: Callable, params, floor, iterations: int):
+    """Maximize `loglik(params) -> ()` over log-variances `params (P,)` by `iterations`
+    Newton steps, each clipped to a factor e per variance, the best of four step lengths
+    (1, 1/2, 1/4, 0) kept and every trial floored at `floor (P,)`; a scaled ascent step
+    where the Hessian is not negative definite. Fixed iterations, so it jits and vmaps."""
+
+    def newton(_, params):
+        g = jax.grad(loglik)(params)
+        H = jax.hessian(loglik)(params)
+        concave = jnp.all(jnp.linalg.eigvalsh(H) < 0)
+        safe = jnp.where(concave, H, -jnp.eye(H.shape[0]) * jnp.maximum(jnp.max(jnp.abs(H)), 1.0))
+        delta = jnp.clip(-jnp.linalg.solve(safe, g), -1.0, 1.0)
+        trials = params[None] + jnp.array([1.0, 0.5, 0.25, 0.0])[:, None] * delta[None]
+        trials = jnp.maximum(trials, floor)
+        values = jax.vmap(loglik)(trials)
+        # A trial whose filter breaks down (NaN) must not win the argmax.
+        return trials[jnp.argmax(jnp.where(jnp.isfinite(values), values, -jnp.inf))]
+
+    return jax.lax.fori_loop(0, iterations, newton, params)

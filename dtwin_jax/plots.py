@@ -28,7 +28,7 @@ def _save(fig, path):
 def plot_pip(result, path=None):
     """Stem plot of every equation's PIPs with the selection threshold; returns the figure.
 
-    ``result`` is an :class:`~dtwin_jax.twin.UpdateResult`; selected terms are labelled.
+    ``result`` is an :class:`~dtwin_jax.update.UpdateResult`; selected terms are labelled.
     Written to ``path`` (PNG) when given.
     """
     eqs = result.equations

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax.kalman import Filtered, rts_smoother
+from dtwin_jax.kalman import Filtered, kalman_filter, rts_smoother
 from dtwin_jax.library import Library, parse_library
 from dtwin_jax.systems import LinearSecondOrder
 
@@ -168,47 +168,22 @@ class Smoothed(NamedTuple):
     loglik: jax.Array  # () log p(y_1..y_{N-1} | y_0)
 
 
-def _filter(lin: Linearization, y, gamma, noise_var):
-    """Kalman filter of `y (N, m)` on the linearized transition with diffusion `gamma (d,)`;
-    per-step outputs."""
-    m = y.shape[-1]
-    Rm = jnp.diag(noise_var)
-
-    def update(mp, Pp, yk):
-        # The noise is independent across states (R diagonal), so the measurement update
-        # takes one state at a time: scalar innovations, no matrix factorisation. Identical
-        # to the joint update, and several times faster batched over records on a CPU.
-        ll = 0.0
-        for i in range(m):
-            col = Pp[:, i]
-            S = col[i] + noise_var[i]
-            r = yk[i] - mp[i]
-            mp = mp + col * (r / S)
-            Pp = Pp - jnp.outer(col, col) / S
-            ll = ll - 0.5 * (r * r / S + jnp.log(S) + jnp.log(2 * jnp.pi))
-        return mp, 0.5 * (Pp + Pp.T), ll
-
-    def forward(carry, inputs):
-        mk, Pk = carry
-        yk, xk, fk, J, unit = inputs
-        mp, Pp = fk + J @ (mk - xk), J @ Pk @ J.T + jnp.einsum("v,vij->ij", gamma, unit)
-        mn, Pn, ll = update(mp, Pp, yk)
-        return (mn, Pn), (mn, Pn, mp, Pp, ll)
-
-    # The first sample with a flat prior: the state is the measurement, covariance R.
-    m0, P0 = y[0], Rm
-    inputs = (y[1:], lin.point[:-1], lin.value, lin.jac, lin.unit_cov)
-    _, (mf, Pf, mp, Pp, ll) = jax.lax.scan(forward, (m0, P0), inputs)
-    mf = jnp.concatenate([m0[None], mf])
-    Pf = jnp.concatenate([P0[None], Pf])
-    return mf, Pf, mp, Pp, jnp.sum(ll)
+def _filter(lin: Linearization, y, gamma, noise_var) -> Filtered:
+    """Kalman filter (:func:`kalman.kalman_filter`) of `y (N, m)` on the linearized
+    transition `X_{k+1} = value_k + jac_k (X_k - point_k) + N(0, Q_k)`,
+    `Q_k = sum_v gamma_v lin.unit_cov[k, v]`, every state measured with noise variances
+    `noise_var (m,)`. The first sample with a flat prior: the state is the measurement,
+    covariance `diag(noise_var)`, and the likelihood is that of `y_1..y_{N-1}` given `y_0`."""
+    c = lin.value - jnp.einsum("kij,kj->ki", lin.jac, lin.point[:-1])
+    Q = (gamma, lin.unit_cov)
+    return kalman_filter(lin.jac, c, Q, None, None, noise_var, y, y[0], jnp.diag(noise_var), update_first=False)
 
 
 def smoother(lin: Linearization, y, gamma, noise_var) -> Smoothed:
     """Kalman filter and RTS smoother of `y (N, m)` under `X_{k+1} = F(X_k) + N(0, Q_k)`,
     `F` linearized by `lin`, `Q_k = sum_v gamma_v lin.unit_cov[k, v]`,
     `y_k = X_k + N(0, diag(noise_var (m,)))`."""
-    filtered = Filtered(*_filter(lin, y, gamma, noise_var))
+    filtered = _filter(lin, y, gamma, noise_var)
     mean, cov, cross = rts_smoother(filtered, lin.jac)
     return Smoothed(mean, cov, cross, filtered.loglik)
 
@@ -255,7 +230,7 @@ def _unpack(params, r, velocity_index):
 
 def _loglik(params, lin, y, r, velocity_index):
     gamma, noise = _unpack(params, r, velocity_index)
-    return jnp.sum(jax.vmap(lambda l, yy, rr: _filter(l, yy, gamma, rr)[-1])(lin, y, noise))
+    return jnp.sum(jax.vmap(lambda l, yy, rr: _filter(l, yy, gamma, rr).loglik)(lin, y, noise))
 
 
 _derivatives = jax.jit(
@@ -390,7 +365,8 @@ def standardized_innovations(lin: Linearization, y, noise_var, gamma, velocity_i
     vel = np.asarray(velocity_index)
 
     def one(l, yy, rr):
-        _, _, mp, Pp, _ = _filter(l, yy, gamma, rr)
+        filtered = _filter(l, yy, gamma, rr)
+        mp, Pp = filtered.pred_mean, filtered.pred_cov
         scale = jnp.sqrt(Pp[:, vel, vel] + rr[vel])
         return (yy[1:, vel] - mp[:, vel]) / scale, mp
 

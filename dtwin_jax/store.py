@@ -40,7 +40,7 @@ _FILES = ("twin.json", "nominal.toml", "posterior.nc", "statistics.npz", "result
 
 
 def save_twin(result, path) -> Path:
-    """Write the :class:`~dtwin_jax.twin.UpdateResult` ``result`` as a twin folder ``path``."""
+    """Write the :class:`~dtwin_jax.update.UpdateResult` ``result`` as a twin folder ``path``."""
     path = Path(path)
     lib = result.library
     if parse_library(lib.spec, lib.num_states, lib.num_inputs).names != lib.names:
@@ -98,10 +98,10 @@ def _header(result) -> dict:
 
 def load_twin(path):
     """Read a twin folder written by :func:`save_twin`; returns an
-    :class:`~dtwin_jax.twin.UpdateResult` whose twin predicts exactly as the saved one."""
+    :class:`~dtwin_jax.update.UpdateResult` whose twin predicts exactly as the saved one."""
     import arviz as az
 
-    from dtwin_jax.twin import SamplerSettings, UpdateResult
+    from dtwin_jax.update import SamplerSettings, UpdateResult
 
     path = Path(path)
     missing = [f for f in _FILES if not (path / f).is_file()]

@@ -36,7 +36,10 @@ from dtwin_jax import kramers_moyal, measurement, sampler, statespace, systems, 
 from dtwin_jax.denoise import auto_half_width
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library, parse_library
-from dtwin_jax.twin import DIFFUSION_LIBRARY, SamplerSettings, _diffusion_stats, output_only_drift_stats
+from dtwin_jax.update.output_only import DIFFUSION_LIBRARY
+from dtwin_jax.update.output_only_stats import diffusion_statistics, output_only_drift_stats
+from dtwin_jax.update.result import SamplerSettings
+from dtwin_jax.update.sampling import _sampler_kwargs
 
 __all__ = [
     "DEFAULT_LEVELS",
@@ -103,13 +106,6 @@ _BAR: list = [None]
 def _tick(_):
     if _BAR[0] is not None:
         _BAR[0].update(1)
-
-
-def _sampler_kwargs(settings: SamplerSettings) -> dict:
-    return dict(
-        num_draws=settings.num_draws, num_burnin=settings.num_burnin, num_chains=settings.num_chains,
-        prior=settings.prior, max_active=settings.max_active, p0=settings.p0, v_s=settings.v_s,
-    )
 
 
 def _sample_and_summarise(keys, stats, truth, support, settings, method, pip_threshold):
@@ -220,23 +216,16 @@ PILOT_WINDOW = 16
 
 
 def _diffusion_stats_one(example, lib, dlib, coef, x, level, key):
-    """The diffusion's EM-target statistics of one noisy ensemble, as
-    :func:`twin.update_output_only` builds them (likelihood maximum given the drift
-    ``coef (q, K)``, zero for unselected terms). Pure: mapped over a study's pairs."""
-    nominal, dt = example.system.nominal, example.dt
+    """The diffusion's EM-target statistics of one noisy ensemble, by the same function as
+    :func:`update_output_only` (:func:`output_only_stats.diffusion_statistics`), given the
+    drift ``coef (q, K)`` (zero for unselected terms). Pure: mapped over a study's pairs."""
+    nominal = example.system.nominal
     y = measurement.add_noise(key, x, level)  # the same noise as in the drift program
-    s2 = kramers_moyal.noise_variance(y)
     regressed = tuple(int(i) for i in nominal.regressed_index)
-    step = statespace.DriftStep(nominal, lib, jnp.asarray(coef), regressed, dt)
-    pilot, _ = kramers_moyal.preaveraged_diffusion(nominal, y, dt, s2, step.perturbation, window=PILOT_WINDOW)
-    seg = statespace.segments(y)
-    gamma, gamma_cov, fitted, lin = statespace.diffusion_mle(step, seg, s2, pilot)
-    vel = tuple(int(v) for v in nominal.velocity_index)
-    Yg, Xg = statespace.diffusion_targets(lin, seg, fitted, gamma, vel)
-    Yg = Yg.reshape(-1, nominal.d)
-    stats = targets.equation_stats(dlib(Xg.reshape(-1, nominal.m)), Yg)
-    jax.debug.callback(_tick, gamma)
-    return _diffusion_stats(stats, Yg, gamma, jnp.diagonal(gamma_cov))
+    step = statespace.DriftStep(nominal, lib, jnp.asarray(coef), regressed, example.dt)
+    fit = diffusion_statistics(step, dlib, y, kramers_moyal.noise_variance(y), window=PILOT_WINDOW)
+    jax.debug.callback(_tick, fit.gamma)
+    return fit.stats
 
 
 @eqx.filter_jit

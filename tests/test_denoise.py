@@ -9,7 +9,7 @@ from dtwin_jax.data import check_records
 from dtwin_jax.denoise import kinematic_smoother, noise_std
 from dtwin_jax.measurement import measure
 from dtwin_jax.targets import input_output_targets
-from dtwin_jax.twin import denoise_states
+from dtwin_jax.update import denoise_states
 
 
 def _ls_cubic(seed, smoothing):

@@ -163,7 +163,8 @@ def test_cli_discovers_drift_and_diffusion_from_a_file_without_u(tmp_path):
 def test_noise_correction_margin_flags_noise_beyond_the_library():
     """Example 1, 100 records: the corrected Gram stays (nearly) definite at 5% noise and
     loses definiteness at 35% (where the sweep selects 15-28 spurious terms)."""
-    from dtwin_jax.twin import MARGIN_WARN, _margin_check, correction_margin
+    from dtwin_jax.update.output_only import MARGIN_WARN, margin_check
+    from dtwin_jax.update.output_only_stats import correction_margin
 
     ex = systems.example1().for_output_only()
     nominal = ex.system.nominal
@@ -176,5 +177,5 @@ def test_noise_correction_margin_flags_noise_beyond_the_library():
         margins.append(float(correction_margin(st.gram)[0]))
     print("margins", margins)
     assert -1e-4 < margins[0] and margins[1] < 10 * MARGIN_WARN
-    assert _margin_check(margins[0])["ok"] and not _margin_check(margins[1])["ok"]
-    assert "noise too large" in _margin_check(margins[1])["warnings"][0]
+    assert margin_check(margins[0])["ok"] and not margin_check(margins[1])["ok"]
+    assert "noise too large" in margin_check(margins[1])["warnings"][0]

@@ -13,7 +13,7 @@ from dtwin_jax.cli import main
 from dtwin_jax.denoise import auto_half_width
 from dtwin_jax.library import parse_library
 from dtwin_jax.measurement import measure
-from dtwin_jax.twin import SamplerSettings
+from dtwin_jax.update import SamplerSettings
 
 LEVELS = [0.0, 0.05, 0.45]
 SETTINGS = SamplerSettings(num_chains=2, num_draws=300, num_burnin=150)

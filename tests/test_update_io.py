@@ -11,7 +11,7 @@ import pytest
 import dtwin_jax  # noqa: F401
 from dtwin_jax import systems
 from dtwin_jax.measurement import measure
-from dtwin_jax.twin import SamplerSettings, update_input_output
+from dtwin_jax.update import SamplerSettings, update_input_output
 from predictive import check_degradation_forecast, check_input_output_prediction
 
 SETTINGS = SamplerSettings(num_chains=2, num_draws=1000, num_burnin=500)

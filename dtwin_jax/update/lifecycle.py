@@ -1,0 +1,71 @@
+"""A twin's lifecycle across updates: a re-update checks that it continues the previous one
+(same mode, nominal model and library), adds the previous update's sufficient statistics
+to the new data's (the previous posterior as the prior, old data discounted by ``forget``)
+and appends an entry to the history that the result carries."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from dtwin_jax import sampler
+from dtwin_jax.data import Records
+from dtwin_jax.errors import DataError
+from dtwin_jax.library import Library
+from dtwin_jax.systems import LinearSecondOrder
+
+__all__ = ["check_previous", "with_previous", "updated_history"]
+
+
+def with_previous(stats: sampler.SuffStats, kind: str, previous, forget: float) -> sampler.SuffStats:
+    """``stats`` plus ``forget`` times the previous update's of the same ``kind``: for the
+    conjugate part of the model the posterior after both data windows, so the previous
+    posterior serves as the prior (``forget < 1`` discounts old data, for a system that drifts)."""
+    if previous is None:
+        return stats
+    old = previous.statistics.get(kind)
+    if old is None:
+        raise DataError(f"the previous update holds no {kind} statistics to combine with")
+    # Same shapes: check_previous has matched the libraries.
+    return sampler.SuffStats(*(jnp.asarray(a) + forget * np.asarray(b) for a, b in zip(stats, old)))
+
+
+def check_previous(previous, mode: str, nominal: LinearSecondOrder, lib: Library, forget: float) -> None:
+    """Raise `DataError` unless ``previous`` (an :class:`UpdateResult` or None) can be
+    continued by a ``mode`` update of ``nominal`` with library ``lib``."""
+    if previous is None:
+        return
+    if not 0.0 <= forget <= 1.0:
+        raise DataError(f"forget must be in [0, 1], got {forget}")
+    if previous.mode != mode:
+        raise DataError(f"cannot re-update a {previous.mode} twin with {mode} data")
+    if previous.library.names != lib.names:
+        raise DataError(f"re-update needs the previous library '{previous.library.spec}', got '{lib.spec}'")
+    same = all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in zip(
+        (previous.nominal.M, previous.nominal.C, previous.nominal.K, previous.nominal.B, previous.nominal.F0),
+        (nominal.M, nominal.C, nominal.K, nominal.B, nominal.F0)))
+    if not same or previous.nominal.extra_states != nominal.extra_states:
+        raise DataError("re-update needs the previous update's nominal model")
+
+
+def updated_history(previous, mode: str, rec: Records, forget: float, equations, seconds: float) -> list[dict]:
+    """The previous update's history plus an entry for this one (``seconds`` of wall time)."""
+    from datetime import datetime, timezone
+
+    from dtwin_jax import __version__
+
+    past = [] if previous is None else list(previous.history)
+    prior = "spike-and-slab" if previous is None else f"posterior of update {len(past)} (forget {forget:g})"
+    R, N, _ = rec.x.shape
+    return past + [{
+        "update": len(past) + 1,
+        "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "mode": mode,
+        "records": int(R),
+        "samples": int(R * N),
+        "window_s": float((N - 1) * rec.dt),
+        "prior": prior,
+        "seconds": round(seconds, 3),
+        "equations": [e.equation() for e in equations],
+        "dtwin_jax": __version__,
+    }]

@@ -1,0 +1,184 @@
+"""Framework 2's statistics: the jittable steps from measured states to the sampler's
+sufficient statistics, shared by :func:`update_output_only` and the noise studies
+(:mod:`dtwin_jax.studies`).
+
+Drift: Kramers-Moyal targets (:mod:`dtwin_jax.kramers_moyal`) in two passes, the second
+moving the regressors along a first sampled estimate (:func:`output_only_drift_stats`).
+Diffusion, given that drift: the Kalman likelihood's maximum and its EM targets
+(:mod:`dtwin_jax.statespace`), weighted to carry the likelihood's information
+(:func:`diffusion_statistics`).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from dtwin_jax import kramers_moyal, sampler, statespace
+from dtwin_jax.library import Library
+from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.targets import equation_stats
+
+__all__ = [
+    "FIRST_PASS_ROWS",
+    "DiffusionFit",
+    "brownian_variance",
+    "correction_margin",
+    "diffusion_statistics",
+    "output_only_drift_stats",
+]
+
+
+_FIRST_PASS = dict(num_chains=1, num_draws=300, num_burnin=300)
+FIRST_PASS_ROWS = 20000
+
+
+@functools.partial(jax.jit, static_argnums=(1,))
+def output_only_drift_stats(nominal: LinearSecondOrder, lib: Library, x, dt, noise_var, key) -> tuple:
+    """Kramers-Moyal drift statistics of records ``x (R, N, m)`` (batched over the regressed
+    states), with the regressors moved along the model's drift (two passes).
+
+    The first pass moves them along the nominal model only, on the first ~20000 samples
+    (:data:`FIRST_PASS_ROWS`); a short sampler run gives the
+    selected terms (PIP > 0.5) and their means, and the second pass moves the regressors
+    along the nominal model plus that estimate (its error enters only the O(dt) shift). A
+    greedy first estimate is not enough: on example 2's 256 terms it adds fifth-degree terms
+    whose rough flow spoils the shift. The second pass uses all samples. Both passes are one
+    compiled loop body (statistics, then the short run; the second pass's run goes unused).
+    Pure and jittable (``dt`` static through the shapes; ``key`` for the short runs).
+    Returns ``(stats, margin (q,))``, ``margin`` the :func:`correction_margin` of the
+    corrected Gram matrices before their eigenvalues are floored.
+    """
+    regressed = jnp.asarray(nominal.regressed_index)
+    vel = jnp.asarray(nominal.velocity_index)
+    q = regressed.size
+
+    R, N, _ = x.shape
+    leading = max(1, FIRST_PASS_ROWS // N) * (N - 2) if R > 1 else FIRST_PASS_ROWS  # whole records
+
+    def one_pass(carry, inputs):
+        key, rows = inputs
+        coef, smoothing, _, _ = carry
+
+        def perturbation(z):
+            return jnp.zeros(z.shape[-1], z.dtype).at[regressed].set(coef @ lib.eval_single(z, None, smoothing))
+
+        st = kramers_moyal.drift_statistics(
+            nominal, lib, x, dt, noise_var, perturbation, smoothing=smoothing, rows=rows
+        )
+        margin = correction_margin(st.gram)
+        st = st._replace(gram=_nearest_pd(st.gram))
+        trace = jax.vmap(lambda k, s: sampler.sample(k, s, **_FIRST_PASS))(jax.random.split(key, q), st)
+        included = trace.gamma.sum(axis=(1, 2))  # (q, K)
+        chosen = included > 0.5 * trace.gamma.shape[1] * trace.gamma.shape[2]
+        coef = jnp.where(chosen, trace.theta.sum(axis=(1, 2)) / jnp.maximum(included, 1), 0.0)
+        gamma = brownian_variance(nominal, dt, noise_var, trace.sigma2.mean(axis=(1, 2)))
+        # Gamma 1.5 dt: the step k+1 -> k+2 seen from sample k; the noise's own smoothing is s^2.
+        c = jnp.maximum(1.5 * dt * gamma - jnp.asarray(noise_var)[vel], 0.0)
+        return (coef, jnp.zeros(nominal.m).at[vel].set(c), st, margin), None
+
+    K = lib.K
+    blank = sampler.SuffStats(jnp.zeros((q, K, K)), jnp.zeros((q, K)), jnp.zeros(q), jnp.zeros(q))
+    carry = (jnp.zeros((q, K)), jnp.zeros(nominal.m), blank, jnp.zeros(q))
+    passes = (jax.random.split(key, 2), jnp.asarray([leading, R * (N - 2)]))
+    (_, _, st, margin), _ = jax.lax.scan(one_pass, carry, passes)
+    return st, margin
+
+
+def correction_margin(gram) -> jax.Array:
+    """Smallest eigenvalue ``(q,)`` of the correlation matrices of noise-corrected Gram
+    matrices ``(q, K, K)``: near zero (collinear terms) or slightly below from sampling error;
+    well below zero where the noise correction removes more than the data hold, and the
+    regression then amplifies noise in those directions without bound."""
+    scale = jnp.sqrt(jnp.maximum(jnp.diagonal(gram, axis1=-2, axis2=-1), 1e-300))
+    return jnp.linalg.eigvalsh(gram / (scale[..., :, None] * scale[..., None, :]))[..., 0]
+
+
+def brownian_variance(nominal: LinearSecondOrder, dt, noise_var, residual_var) -> jax.Array:
+    """The velocities' diffusion ``Gamma (d,)`` seen in the drift regression's residual
+    variance ``residual_var (r,)`` (target units), less the measurement noise's share.
+
+    A rough estimate (it holds the drift's misfit too) for smoothing the non-smooth library
+    families: over a step the velocity moves by a Brownian increment of variance
+    ``Gamma * time``, and ``E[sign(v)]`` over it is a smoothed sign (:meth:`Library.__call__`).
+    """
+    Phi, Psi = kramers_moyal.propagators(nominal, dt)
+    noise = jnp.diag(jnp.asarray(noise_var))
+    back = jnp.linalg.inv(Psi)
+    noise_in_targets = jnp.diagonal(back @ (noise + Phi @ noise @ Phi.T) @ back.T)
+    vel = jnp.asarray(nominal.velocity_index)
+    return dt * jnp.maximum(jnp.asarray(residual_var)[: nominal.d] - noise_in_targets[vel], 0.0)
+
+
+def _nearest_pd(gram):
+    """Noise-corrected Gram matrices ``(q, K, K)`` can lose definiteness in directions the data
+    barely sees; floor the eigenvalues of the correlation matrix at ``1e-9``."""
+    scale = jnp.sqrt(jnp.maximum(jnp.diagonal(gram, axis1=-2, axis2=-1), 1e-300))
+    corr = gram / (scale[..., :, None] * scale[..., None, :])
+    w, v = jnp.linalg.eigh(corr)
+    corr = jnp.einsum("...ij,...j,...kj->...ik", v, jnp.maximum(w, 1e-9), v)
+    return corr * (scale[..., :, None] * scale[..., None, :])
+
+
+class DiffusionFit(NamedTuple):
+    """:func:`diffusion_statistics`' output for records cut into `P` segments of `L` samples."""
+
+    stats: sampler.SuffStats  # weighted EM-target statistics, gram (d, Kd, Kd) .. n (d,)
+    gamma: jax.Array  # (d,) maximum-likelihood diffusion, velocity^2 / s
+    gamma_cov: jax.Array  # (d, d) its covariance, the noise profiled out
+    noise: jax.Array  # (P, m) fitted measurement noise variances per segment
+    lin: statespace.Linearization  # batched over segments, at the maximum
+    segments: jax.Array  # (P, L, m) the records' segments
+    columns: jax.Array  # (P (L-1), Kd) diffusion library at the smoothed states
+    pilot: jax.Array  # (d,) pre-averaged first guess of gamma
+    window: int  # its pre-averaging window in samples
+
+
+def diffusion_statistics(
+    step: statespace.DriftStep, dlib: Library, x, noise_var, *, window: int | None = None
+) -> DiffusionFit:
+    """The diffusion library's statistics, given the drift ``step``, from records
+    ``x (R, N, m)`` with measurement noise variances ``noise_var (m,)`` (first guesses,
+    refitted with the diffusion); ``dlib`` the diffusion library (no inputs).
+
+    Pre-averaged first guess (:func:`kramers_moyal.preaveraged_diffusion`), likelihood
+    maximum (:func:`statespace.diffusion_mle`), EM targets at it and their statistics on
+    ``dlib`` weighted by :func:`_diffusion_stats`. ``window``: the pre-averaging window;
+    None picks it from the data, which needs concrete values, so pass an int under ``jit``.
+    """
+    nominal = step.nominal
+    pilot, window = kramers_moyal.preaveraged_diffusion(
+        nominal, x, step.dt, noise_var, step.perturbation, window=window
+    )
+    y = statespace.segments(x)
+    gamma, gamma_cov, noise, lin = statespace.diffusion_mle(step, y, noise_var, pilot)
+    vel = tuple(int(v) for v in nominal.velocity_index)
+    Y, X = statespace.diffusion_targets(lin, y, noise, gamma, vel)
+    Y = Y.reshape(-1, nominal.d)
+    L = dlib(X.reshape(-1, nominal.m))
+    stats = _diffusion_stats(equation_stats(L, Y), Y, gamma, jnp.diagonal(gamma_cov))
+    return DiffusionFit(stats, gamma, gamma_cov, noise, lin, y, L, pilot, window)
+
+
+def _diffusion_stats(stats: sampler.SuffStats, Y, gamma, gamma_var) -> sampler.SuffStats:
+    """Statistics of the EM diffusion targets `Y (n, d)`, weighted to carry the likelihood's
+    information about `gamma (d,)`, whose variance is `gamma_var (d,)`.
+
+    A target is the conditional expectation of a squared one-step residual, `Gamma chi^2_1`,
+    whose scatter `2 Gamma^2` around it the expectation removes; that scatter is added back
+    to the residual sum of squares, so the sampler's noise level is a squared increment's.
+    The targets then count as `n_eff = 2 Gamma^2 / Var(Gamma)` independent squared
+    increments, so a constant diffusion's posterior variance is `1 / information`.
+    """
+    n = Y.shape[0]
+    missing = jnp.maximum(2.0 * gamma**2 - jnp.var(Y, axis=0), 0.0)
+    scale = 2.0 * gamma**2 / gamma_var / n  # n_eff / n
+    return sampler.SuffStats(
+        stats.gram * scale[:, None, None],
+        stats.xty * scale[:, None],
+        (stats.yty + n * missing) * scale,
+        stats.n * scale,
+    )
