@@ -12,3 +12,10 @@ if _worker.startswith("gw") and hasattr(os, "sched_setaffinity"):
     _cores = sorted(os.sched_getaffinity(0))
     os.sched_setaffinity(0, {_cores[int(_worker[2:]) % len(_cores)]})
 
+
+# One persistent XLA compilation cache for the whole session, shared by the workers: tests
+# build the same programs (sampler, simulators, smoothers) in many places.
+import jax  # noqa: E402
+
+jax.config.update("jax_compilation_cache_dir", os.environ.get("DTWIN_TEST_JAX_CACHE", os.path.join(os.path.dirname(__file__), "..", ".pytest_cache", "jax")))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
