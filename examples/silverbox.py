@@ -67,6 +67,14 @@ def run(path, *, draws: int = 30, estimation=ESTIMATION, seed: int = 0, settings
     else:  # the posterior-mean twin alone, no band
         mean = np.asarray(simulate(result.twin, x0, ta, ua)[0][:, 0])
         lower = upper = None
+    # Model error, which the posterior does not carry: the posterior-mean twin's free-run
+    # error on the training data itself (after a 1000-sample start transient), as a
+    # Gaussian added to the band.
+    fitted = np.asarray(simulate(result.twin, x0, t, ue)[0][:, 0])
+    model_sd = float(np.std(fitted[1000:] - ye[1000:, 0]))
+    if lower is not None:
+        half = np.sqrt(((upper - lower) / 2) ** 2 + (1.96 * model_sd) ** 2)
+        lower_m, upper_m = mean - half, mean + half
     inside_range = (ya >= ye.min()) & (ya <= ye.max())
     within = slice(0, int(np.flatnonzero(~inside_range)[0]) if not inside_range.all() else ya.size)
 
@@ -88,6 +96,10 @@ def run(path, *, draws: int = 30, estimation=ESTIMATION, seed: int = 0, settings
         "within_training_range_samples": within.stop,
         "band_coverage": None if lower is None else float(np.mean((ya >= lower) & (ya <= upper))),
         "band_width_mV": None if lower is None else float(1e3 * np.mean(upper - lower)),
+        "model_error_sd_mV": 1e3 * model_sd,
+        "band_with_model_error_coverage": None if lower is None else {
+            "arrow": float(np.mean((ya >= lower_m) & (ya <= upper_m))),
+            "within_training_range": float(np.mean(((ya >= lower_m) & (ya <= upper_m))[within]))},
         "seconds": {"identify": identify_s, "update": result.seconds},
     }
 
@@ -133,7 +145,8 @@ def main() -> None:
     print("nominal (identified): K", float(out["nominal"].K[0, 0]), "C", float(out["nominal"].C[0, 0]),
           "B", float(out["nominal"].B[0, 0]), "F0", float(out["nominal"].F0[0]))
     print(json.dumps({k: out[k] for k in ("rms_mV", "within_training_range_samples", "band_coverage",
-                                          "band_width_mV", "seconds")}, indent=1))
+                                          "band_width_mV", "model_error_sd_mV",
+                                          "band_with_model_error_coverage", "seconds")}, indent=1))
     figure(out, args.figure)
     if args.out:
         from dtwin_jax.io import write_json

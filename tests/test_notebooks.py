@@ -115,6 +115,10 @@ def check_silverbox(text: str) -> None:
     ratio, samples = _numbers(_line(text, "ratio: "))
     assert twin < 0.6 and ratio > 20.0 and within < 0.5, (twin, ratio, within)
     assert samples == 26193
+    # The band with the training data's free-run error added (measured 97.3% within the
+    # training range, 90.8% of the whole arrow); parameter uncertainty alone covers 5%.
+    arrow, inside = _numbers(_line(text, "band with model error: covers "))
+    assert 90.0 < inside < 99.0 and arrow > 85.0, (inside, arrow)
 
 
 CHECKS = {
