@@ -14,7 +14,7 @@ from dtwin_jax.errors import DataError  # noqa: E402
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, parse_library  # noqa: E402
 from dtwin_jax.measurement import measure  # noqa: E402
 from dtwin_jax.systems import LinearSecondOrder, PerturbedSystem, simulate  # noqa: E402
-from dtwin_jax.predict import UpdatedTwin, posterior_twins, predict, simulation_error  # noqa: E402
+from dtwin_jax.predict import UpdatedTwin, posterior_twins, predict, simulation_error, with_model_error  # noqa: E402
 from dtwin_jax.update import (  # noqa: E402
     SamplerSettings,
     UpdateResult,
@@ -35,6 +35,7 @@ __all__ = [
     "parse_library",
     "posterior_twins",
     "predict",
+    "with_model_error",
     "sampler",
     "simulate",
     "simulation_error",

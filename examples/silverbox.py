@@ -21,7 +21,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from dtwin_jax import posterior_twins, predict, simulate, update_input_output
+from dtwin_jax import posterior_twins, predict, simulate, simulation_error, update_input_output, with_model_error
 from dtwin_jax.estimate import identify_linear
 
 FS = 1e7 / 2**14  # Hz
@@ -70,11 +70,11 @@ def run(path, *, draws: int = 30, estimation=ESTIMATION, seed: int = 0, settings
     # Model error, which the posterior does not carry: the posterior-mean twin's free-run
     # error on the training data itself (after a 1000-sample start transient), as a
     # Gaussian added to the band.
-    fitted = np.asarray(simulate(result.twin, x0, t, ue)[0][:, 0])
-    model_sd = float(np.std(fitted[1000:] - ye[1000:, 0]))
+    fitted = simulate(result.twin, x0, t, ue)[0][1000:, :1]
+    model_sd = float(simulation_error(fitted, ye[1000:])["rmse"][0])
     if lower is not None:
-        half = np.sqrt(((upper - lower) / 2) ** 2 + (1.96 * model_sd) ** 2)
-        lower_m, upper_m = mean - half, mean + half
+        wide = with_model_error(pred, [model_sd, 0.0])  # the velocity's error is not measured
+        lower_m, upper_m = (np.asarray(wide[k][:, 0]) for k in ("lower", "upper"))
     inside_range = (ya >= ye.min()) & (ya <= ye.max())
     within = slice(0, int(np.flatnonzero(~inside_range)[0]) if not inside_range.all() else ya.size)
 

@@ -101,3 +101,13 @@ def test_lifecycle_errors_are_one_line_and_write_nothing(saved, tmp_path, capsys
     err = capsys.readouterr().err.strip()
     assert err.startswith("dtwin-jax: error:") and "\n" not in err
     assert not out.exists() and not (tmp_path / "t").exists()
+
+
+def test_with_model_error_adds_half_widths_in_quadrature():
+    from dtwin_jax import with_model_error
+
+    pred = {"mean": np.zeros((3, 2)), "lower": -np.full((3, 2), 1.96 * 3.0), "upper": np.full((3, 2), 1.96 * 3.0)}
+    wide = with_model_error(pred, [4.0, 0.0])
+    np.testing.assert_allclose(np.asarray(wide["upper"]), [[1.96 * 5.0, 1.96 * 3.0]] * 3)
+    np.testing.assert_allclose(np.asarray(wide["lower"]), -np.asarray(wide["upper"]))
+    assert wide["mean"] is pred["mean"]
