@@ -255,7 +255,8 @@ def identify_linear(
     xdot=None,
     xdot_names=None,
     interpolation: str = "held",
-    iterations: int = 4,
+    max_iterations: int = 30,
+    rtol: float = 1e-4,
 ) -> LinearSecondOrder:
     """A linear model `q'' + C q' + K q = B u + F0` (unit mass matrix: only `M^-1` times
     the rest is identifiable without a known force scale) fitted to input-output records.
@@ -264,8 +265,12 @@ def identify_linear(
     `2d`), `u (.., N, n)` inputs. Starting from pure kinematics (`C = K = B = F0 = 0`, the
     whole acceleration a disturbance), :func:`state_smoother` estimates every state and
     acceleration, least squares fits `C, K, B, F0` to them, and the smoother runs again
-    under the fitted model, `iterations` times: the model then interpolates between the
-    samples, which at a few samples per period no differentiating filter can.
+    under the fitted model, until the fitted acceleration moves by less than `rtol` of its
+    std (at most `max_iterations` rounds): the model then interpolates between the samples,
+    which at a few samples per period no differentiating filter can. The smoother shrinks
+    the disturbance toward the current model, so each round corrects only part of the gap
+    (a lightly damped system at 9 samples per period: C 7.5% and B 3.5% short after 4
+    rounds, exact after 12).
     """
     from dtwin_jax.data import check_records
 
@@ -281,7 +286,8 @@ def identify_linear(
     rec = check_records(t, x, u, xdot)
     if rec.x.shape[-1] != len(x_index):
         raise DataError(f"'x' has {rec.x.shape[-1]} columns but x_names names {len(x_index)}")
-    for _ in range(iterations):
+    previous = None
+    for _ in range(max_iterations):
         xs, rates, _ = state_smoother(
             nominal, rec.dt, rec.x, x_index, rec.u, rec.xdot, xdot_index, interpolation=interpolation
         )
@@ -292,4 +298,9 @@ def identify_linear(
         nominal = LinearSecondOrder.create(
             np.eye(d), -coef[:, d : 2 * d], -coef[:, :d], coef[:, 2 * d : 2 * d + n], F0=coef[:, -1]
         )
+        if previous is not None:
+            moved = np.std(regressors @ (coef - previous).T, axis=0)
+            if np.all(moved <= rtol * np.std(regressors @ coef.T, axis=0)):
+                break
+        previous = coef
     return nominal
