@@ -2,45 +2,54 @@
 
 Data flows one way:
 measurements -> nominal removed -> targets and library -> sampler -> posterior -> updated twin.
+
+The public names below are imported on first use (PEP 562), so ``import dtwin_jax`` and
+``dtwin-jax --help`` cost little more than importing jax.
 """
+
+import importlib
 
 import jax
 
 # The one piece of global state: every computation here is float64.
 jax.config.update("jax_enable_x64", True)
 
-from dtwin_jax import sampler, systems  # noqa: E402
-from dtwin_jax.errors import DataError  # noqa: E402
-from dtwin_jax.library import DEFAULT_LIBRARY, Library, parse_library  # noqa: E402
-from dtwin_jax.measurement import measure  # noqa: E402
-from dtwin_jax.systems import LinearSecondOrder, PerturbedSystem, simulate  # noqa: E402
-from dtwin_jax.predict import UpdatedTwin, posterior_twins, predict, simulation_error, with_model_error  # noqa: E402
-from dtwin_jax.update import (  # noqa: E402
-    SamplerSettings,
-    UpdateResult,
-    update_input_output,
-    update_output_only,
-)
+# name -> module that defines it
+_PUBLIC = {
+    "DEFAULT_LIBRARY": "library",
+    "Library": "library",
+    "parse_library": "library",
+    "DataError": "errors",
+    "measure": "measurement",
+    "LinearSecondOrder": "systems",
+    "PerturbedSystem": "systems",
+    "simulate": "systems",
+    "UpdatedTwin": "prediction",
+    "posterior_twins": "prediction",
+    "predict": "prediction",
+    "simulation_error": "prediction",
+    "with_model_error": "prediction",
+    "SamplerSettings": "update",
+    "UpdateResult": "update",
+    "refine_output_error": "update",
+    "update_input_output": "update",
+    "update_output_only": "update",
+}
+_SUBMODULES = ("sampler", "systems")
 
-__all__ = [
-    "DEFAULT_LIBRARY",
-    "DataError",
-    "Library",
-    "LinearSecondOrder",
-    "PerturbedSystem",
-    "SamplerSettings",
-    "UpdateResult",
-    "UpdatedTwin",
-    "measure",
-    "parse_library",
-    "posterior_twins",
-    "predict",
-    "with_model_error",
-    "sampler",
-    "simulate",
-    "simulation_error",
-    "systems",
-    "update_input_output",
-    "update_output_only",
-]
+__all__ = sorted([*_PUBLIC, *_SUBMODULES])
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    if name in _SUBMODULES:
+        return importlib.import_module(f"dtwin_jax.{name}")
+    if name in _PUBLIC:
+        value = getattr(importlib.import_module(f"dtwin_jax.{_PUBLIC[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'dtwin_jax' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted([*globals(), *__all__])

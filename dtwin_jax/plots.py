@@ -84,7 +84,7 @@ def plot_noise_sweep(sweep, path=None):
 
 def plot_prediction(prediction, truth=None, *, states=None, names=None, path=None, label="truth"):
     """Predicted mean and 95% band of each state against ``truth (N, m)`` (the paper's
-    Figs. 7-9). ``prediction`` is the dict of :func:`dtwin_jax.predict.predict`; ``states``
+    Figs. 7-9). ``prediction`` is the dict of :func:`dtwin_jax.prediction.predict`; ``states``
     the indices to show (default all)."""
     t = np.asarray(prediction["t"])
     mean, lower, upper = (np.asarray(prediction[k]) for k in ("mean", "lower", "upper"))
@@ -106,7 +106,7 @@ def plot_prediction(prediction, truth=None, *, states=None, names=None, path=Non
 
 def plot_degradation(forecast, truth=None, path=None):
     """Damage forecast (mean, 95% band, truth) and the failure-probability curve with its
-    95% interval; ``forecast`` from :func:`dtwin_jax.predict.degradation_forecast`."""
+    95% interval; ``forecast`` from :func:`dtwin_jax.prediction.degradation_forecast`."""
     t = np.asarray(forecast["t"])
     fig = _figure((11, 4))
     ax_d, ax_p = fig.subplots(1, 2)

@@ -4,7 +4,8 @@ A twin folder holds, format version 1:
 
 * ``twin.json``: ``format`` ("dtwin-jax twin"), ``version``, ``mode``, state and input
   names, the library specs, sampler settings, PIP threshold, preprocessing, checks, the
-  ``history`` of updates (time, data size, prior, discovered equations, package version);
+  ``history`` of updates (time, data size, prior, discovered equations, package version),
+  and the output-error ``refinement`` (or null);
 * ``nominal.toml``: the nominal model (the nominal file of formats.md);
 * ``posterior.nc``: every equation's draws as an arviz DataTree (netCDF, group
   ``posterior``: ``theta_<state>_<kind>``, ``gamma_...``, ``sigma2_...``);
@@ -93,6 +94,7 @@ def _header(result) -> dict:
         "preprocessing": result.preprocessing,
         "checks": result.checks,
         "history": result.history,
+        "refinement": result.refinement,
     }
 
 
@@ -141,5 +143,5 @@ def load_twin(path):
         mode=head["mode"], nominal=nominal, library=lib, equations=equations,
         pip_threshold=head["pip_threshold"], settings=settings, seconds=head["seconds"],
         preprocessing=head["preprocessing"], checks=head["checks"], statistics=statistics,
-        history=head["history"],
+        history=head["history"], refinement=head.get("refinement"),
     )

@@ -209,6 +209,7 @@ def simulate(
     atol: float = 1e-12,
     max_steps: int | None = None,
     interpolation: str | None = None,
+    adjoint: diffrax.AbstractAdjoint | None = None,
 ) -> tuple[Float[Array, "N m"], Float[Array, "N m"]]:
     """Integrate `dX/dt = system.rate(X, u(t))` under the sampled input `u`.
 
@@ -221,7 +222,8 @@ def simulate(
 
     Returns `x (N, m)` at the times `t (N,)` and `xdot (N, m)`, where
     `xdot[i] = system.rate(x[i], u[i])` is what an ideal accelerometer reads.
-    `max_steps` defaults to `16 N + 4096`.
+    `max_steps` defaults to `16 N + 4096`. `adjoint`: diffrax's (default
+    `RecursiveCheckpointAdjoint`, reverse mode); `diffrax.ForwardMode()` for `jax.jacfwd`.
     """
     float_ = jnp.result_type(float)
     t, x0, u = (jnp.asarray(a, dtype=float_) for a in (t, x0, u))
@@ -263,6 +265,7 @@ def simulate(
         saveat=diffrax.SaveAt(ts=t),
         stepsize_controller=controller,
         max_steps=max_steps,
+        adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
     )
     x = sol.ys
     xdot = jax.vmap(system.rate)(x, u)

@@ -2,7 +2,7 @@
 ``lifecycle``, ``sampling``, ``input_output``, ``output_only``, ``output_only_stats``);
 this module re-exports its names for code that imports them from here."""
 
-from dtwin_jax.predict import UpdatedTwin
+from dtwin_jax.prediction import UpdatedTwin
 from dtwin_jax.update.input_output import denoise_states, update_input_output
 from dtwin_jax.update.output_only import (
     DIFFUSION_LIBRARY,

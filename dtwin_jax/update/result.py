@@ -12,8 +12,8 @@ import numpy as np
 
 from dtwin_jax import sampler
 from dtwin_jax.library import Library
-from dtwin_jax.posterior import EquationPosterior
-from dtwin_jax.predict import UpdatedTwin, diffusion_terms
+from dtwin_jax.posterior import EquationPosterior, format_coefficient
+from dtwin_jax.prediction import UpdatedTwin, diffusion_terms, refined_coefficients
 from dtwin_jax.systems import LinearSecondOrder
 
 __all__ = ["SamplerSettings", "UpdateResult"]
@@ -52,6 +52,9 @@ class UpdateResult:
     statistics: dict = field(default_factory=dict)
     # One entry per update of this twin, oldest first (time, data size, prior, equations).
     history: list = field(default_factory=list)
+    # The output-error refinement of the selected drift coefficients (update.output_error):
+    # their Laplace posterior ("index" into the (q, K) coefficients, "mean", "cov"), or None.
+    refinement: dict | None = None
 
     @property
     def state_names(self) -> tuple[str, ...]:
@@ -71,6 +74,8 @@ class UpdateResult:
         drift = [e for e in self.equations if e.kind == "drift"]
         index = tuple(self.state_names.index(e.state) for e in drift)
         coef = np.stack([e.coefficients for e in drift]) if drift else np.zeros((0, self.library.K))
+        if self.refinement is not None:
+            coef = refined_coefficients(coef, self.refinement["index"], self.refinement["mean"])
         diffusion = [e for e in self.equations if e.kind == "diffusion"]
         interpolation = self.preprocessing.get("input_interpolation", "held")
         if not diffusion:
@@ -135,11 +140,25 @@ class UpdateResult:
             "preprocessing": self.preprocessing,
             "checks": self.checks,
             "history": self.history,
+            **({"refinement": self.refinement_json()} if self.refinement is not None else {}),
         }
 
+    def refinement_json(self) -> dict:
+        """The refined coefficients as the result file gives them (mean, std per term)."""
+        ref = self.refinement
+        std = np.sqrt(np.diag(np.asarray(ref["cov"]).reshape(len(ref["mean"]), -1)))
+        terms = [dict(term, mean=float(m), std=float(s)) for term, m, s in zip(ref["terms"], ref["mean"], std)]
+        keep = ("method", "noise_std", "residual_scale", "hac_lags", "iterations", "samples")
+        return {"terms": terms, **{k: ref[k] for k in keep}}
+
     def summary(self) -> str:
-        """The discovered perturbation, one equation per line."""
-        return "\n".join(e.equation() for e in self.equations)
+        """The discovered perturbation, one equation per line (and the refined coefficients)."""
+        lines = [e.equation() for e in self.equations]
+        if self.refinement is not None:
+            refined = ", ".join(f"{t['state']} {t['expr']}: {format_coefficient(t['mean'], t['std'])}"
+                                for t in self.refinement_json()["terms"])
+            lines.append(f"output-error refinement: {refined}")
+        return "\n".join(lines)
 
     def to_arviz(self):
         """All equations' draws in one arviz DataTree (variables ``theta_<state>`` etc.)."""

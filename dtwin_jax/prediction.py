@@ -94,7 +94,9 @@ def posterior_twins(result, num_draws: int = 100, key=None) -> UpdatedTwin:
     """`num_draws` joint posterior draws of an update's twin, stacked on a leading axis.
 
     Every draw takes all equations' coefficients from one (chain, draw) of the Gibbs run:
-    the twin's parameter uncertainty, inclusion included (an excluded term is zero).
+    the twin's parameter uncertainty, inclusion included (an excluded term is zero). A
+    refined update (:func:`dtwin_jax.update.refine_output_error`) draws the selected terms'
+    coefficients from their refined Gaussian posterior instead (the others are zero).
     """
     if num_draws < 1:
         raise DataError(f"num_draws must be positive, got {num_draws}")
@@ -103,14 +105,30 @@ def posterior_twins(result, num_draws: int = 100, key=None) -> UpdatedTwin:
     drift = [e for e in result.equations if e.kind == "drift"]
     diffusion = [e for e in result.equations if e.kind == "diffusion"]
     names = result.nominal.state_names
-    coef = np.stack([e.theta[c, k] for e in drift], axis=1)  # (S, q, K)
     twin = result.twin
+    if result.refinement is not None:
+        ref = result.refinement
+        mean, cov = np.asarray(ref["mean"]), np.asarray(ref["cov"]).reshape(len(ref["mean"]), -1)
+        draws = np.asarray(jax.random.multivariate_normal(jax.random.fold_in(key, 1), mean, cov, (num_draws,),
+                                                          method="svd"))
+        coef = refined_coefficients(np.zeros((num_draws, *twin.coefficients.shape)), ref["index"], draws)
+    else:
+        coef = np.stack([e.theta[c, k] for e in drift], axis=1)  # (S, q, K)
     if not diffusion:
         return eqx.tree_at(lambda t: t.coefficients, twin, jnp.asarray(coef))
     dcoef = np.stack([e.theta[c, k] for e in diffusion], axis=1)  # (S, d, Kd)
     assert [e.state for e in diffusion] == [names[v] for v in result.nominal.velocity_index]
     return UpdatedTwin(twin.nominal, twin.library, twin.regressed, jnp.asarray(coef), *diffusion_terms(result, dcoef),
                        twin.interpolation)
+
+
+def refined_coefficients(coef, index, values) -> np.ndarray:
+    """`coef (..., q, K)` with the flat entries `index (P,)` of each `(q, K)` block set to
+    `values (..., P)`, all others zero (an output-error refinement's terms)."""
+    coef = np.asarray(coef, np.float64)
+    flat = np.zeros(coef.shape[:-2] + (coef.shape[-2] * coef.shape[-1],))
+    flat[..., np.asarray(index, int)] = values
+    return flat.reshape(coef.shape)
 
 
 def diffusion_terms(result, dcoef) -> tuple[Library, jax.Array]:
