@@ -85,6 +85,8 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument("--plot", default=None, help="also write a PIP stem plot (PNG)")
     d.add_argument("--save-twin", default=None, metavar="TWIN_DIR",
                    help="also save the updated twin (posterior, nominal, library, history) to this folder")
+    d.add_argument("--refine", action="store_true",
+                   help="input-output: refine the selected coefficients by output error (sharper long free runs)")
     _add_sampler_args(d, draws=2000, burn_in=1000)
 
     pr = sub.add_parser("predict", help="posterior-predictive simulation of a saved twin under a new input")
@@ -169,6 +171,8 @@ def _update(args, mode, nominal, data, *, library, diffusion_library=None, previ
     common = dict(pip_threshold=args.pip_threshold, settings=_settings(args), seed=args.seed,
                   progress=not args.quiet, previous=previous, forget=forget)
     if mode == "output-only":
+        if getattr(args, "refine", False):
+            raise DataError("--refine needs input-output data (output error simulates the measured input)")
         if data.get("x_names") not in (None, list(nominal.state_names)) or "xdot" in data:
             raise DataError("output-only mode needs every state measured (no 'x_names' subset, no 'xdot')")
         return update_output_only(nominal, data["t"], data["x"], library=library,
@@ -178,7 +182,8 @@ def _update(args, mode, nominal, data, *, library, diffusion_library=None, previ
     return update_input_output(nominal, data["t"], data["x"], data["u"], data.get("xdot"),
                                x_names=data.get("x_names"), xdot_names=data.get("xdot_names"),
                                interpolation=data.get("u_interpolation", "held"),
-                               library=library, smoothing=args.smoothing, **common)
+                               library=library, smoothing=args.smoothing, refine=getattr(args, "refine", False),
+                               **common)
 
 
 def _report(args, result) -> None:
@@ -225,7 +230,7 @@ def _predict(args) -> int:
     import numpy as np
 
     from dtwin_jax.io import atomic_path, load_prediction_input
-    from dtwin_jax.predict import posterior_twins, predict
+    from dtwin_jax.prediction import posterior_twins, predict
     from dtwin_jax.store import load_twin
 
     _check_writable(args.out)
@@ -393,9 +398,40 @@ def _sweep(args) -> int:
     return 0
 
 
+def configure_runtime(cores: str | None = None) -> dict:
+    """Process set-up for the command line, before any JAX computation.
+
+    * A persistent XLA compilation cache (``$DTWIN_JAX_CACHE``, default
+      ``~/.cache/dtwin-jax/jax``; ``DTWIN_JAX_CACHE=off`` disables it): a rerun reuses the
+      compiled sampler, smoothers and simulators instead of compiling them again.
+    * Threading (``cores``, else ``$DTWIN_JAX_CORES``): ``"1"`` (the default on CPU) pins the
+      process to one core, ``"all"`` leaves the affinity alone. XLA's CPU thread pool spins
+      while it waits, and on a shared small machine one pinned process ran the sampler 2.7x
+      faster (README, "Performance"); on a large machine or a GPU use ``all``.
+    Returns what was set."""
+    import jax
+
+    done = {}
+    cache = os.environ.get("DTWIN_JAX_CACHE", os.path.join(Path.home(), ".cache", "dtwin-jax", "jax"))
+    if cache != "off":
+        jax.config.update("jax_compilation_cache_dir", cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+        done["compilation_cache"] = cache
+    cores = cores or os.environ.get("DTWIN_JAX_CORES", "1")
+    if cores not in ("1", "all"):
+        raise DataError(f"DTWIN_JAX_CORES must be 1 or all, got {cores!r}")
+    if cores == "1" and hasattr(os, "sched_setaffinity"):
+        allowed = sorted(os.sched_getaffinity(0))
+        if len(allowed) > 1:
+            os.sched_setaffinity(0, {allowed[0]})
+        done["cores"] = [allowed[0]]
+    return done
+
+
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
+        configure_runtime()
         if getattr(args, "out_dir", None):
             _check_writable(args.out_dir, folder=True)
         commands = {"sweep": _sweep, "discover": _discover, "demo": _demo, "predict": _predict,

@@ -17,5 +17,7 @@ if _worker.startswith("gw") and hasattr(os, "sched_setaffinity"):
 # build the same programs (sampler, simulators, smoothers) in many places.
 import jax  # noqa: E402
 
-jax.config.update("jax_compilation_cache_dir", os.environ.get("DTWIN_TEST_JAX_CACHE", os.path.join(os.path.dirname(__file__), "..", ".pytest_cache", "jax")))
+_cache = os.environ.get("DTWIN_TEST_JAX_CACHE", os.path.join(os.path.dirname(__file__), "..", ".pytest_cache", "jax"))
+os.environ["DTWIN_JAX_CACHE"] = _cache  # the command line run in-process uses the same
+jax.config.update("jax_compilation_cache_dir", _cache)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
