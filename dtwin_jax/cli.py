@@ -166,8 +166,6 @@ def _discover(args) -> int:
 
 
 def _update(args, mode, nominal, data, *, library, diffusion_library=None, previous=None, forget=1.0):
-    from dtwin_jax.update import update_input_output, update_output_only
-
     common = dict(pip_threshold=args.pip_threshold, settings=_settings(args), seed=args.seed,
                   progress=not args.quiet, previous=previous, forget=forget)
     if mode == "output-only":
@@ -175,10 +173,14 @@ def _update(args, mode, nominal, data, *, library, diffusion_library=None, previ
             raise DataError("--refine needs input-output data (output error simulates the measured input)")
         if data.get("x_names") not in (None, list(nominal.state_names)) or "xdot" in data:
             raise DataError("output-only mode needs every state measured (no 'x_names' subset, no 'xdot')")
+        from dtwin_jax.update.output_only import update_output_only
+
         return update_output_only(nominal, data["t"], data["x"], library=library,
                                   diffusion_library=diffusion_library, **common)
     if "u" not in data:
         raise DataError(f"input-output mode needs key 'u' in '{args.data}'")
+    from dtwin_jax.update.input_output import update_input_output
+
     return update_input_output(nominal, data["t"], data["x"], data["u"], data.get("xdot"),
                                x_names=data.get("x_names"), xdot_names=data.get("xdot_names"),
                                interpolation=data.get("u_interpolation", "held"),

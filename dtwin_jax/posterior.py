@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import arviz as az
+import arviz_stats as az  # arviz's statistics without its plotting (matplotlib) import
 import numpy as np
 
 __all__ = ["EquationPosterior", "format_equation", "format_coefficient"]
@@ -136,7 +136,9 @@ class EquationPosterior:
 
     def to_arviz(self):
         """The draws as an arviz DataTree (``theta`` and ``gamma`` over ``term``, ``sigma2``)."""
-        return az.from_dict(
+        import arviz_base
+
+        return arviz_base.from_dict(
             {
                 "posterior": {
                     "theta": self.theta,

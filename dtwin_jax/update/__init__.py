@@ -15,20 +15,27 @@ Both return an :class:`UpdateResult` (``result``), which a later update takes as
 ``previous`` (``lifecycle``) and :mod:`dtwin_jax.store` saves and loads.
 """
 
-from dtwin_jax.prediction import UpdatedTwin
-from dtwin_jax.update.input_output import denoise_states, update_input_output
-from dtwin_jax.update.output_only import DIFFUSION_LIBRARY, OUTPUT_ONLY_LIBRARY, update_output_only
-from dtwin_jax.update.output_error import refine_output_error
-from dtwin_jax.update.result import SamplerSettings, UpdateResult
+import importlib
 
-__all__ = [
-    "SamplerSettings",
-    "UpdateResult",
-    "UpdatedTwin",
-    "denoise_states",
-    "update_input_output",
-    "update_output_only",
-    "refine_output_error",
-    "OUTPUT_ONLY_LIBRARY",
-    "DIFFUSION_LIBRARY",
-]
+# name -> submodule that defines it, imported on first use (PEP 562): an input-output update
+# need not import framework 2's modules.
+_PUBLIC = {
+    "UpdatedTwin": "dtwin_jax.prediction",
+    "denoise_states": "dtwin_jax.update.input_output",
+    "update_input_output": "dtwin_jax.update.input_output",
+    "update_output_only": "dtwin_jax.update.output_only",
+    "OUTPUT_ONLY_LIBRARY": "dtwin_jax.update.output_only",
+    "DIFFUSION_LIBRARY": "dtwin_jax.update.output_only",
+    "refine_output_error": "dtwin_jax.update.output_error",
+    "SamplerSettings": "dtwin_jax.update.result",
+    "UpdateResult": "dtwin_jax.update.result",
+}
+__all__ = list(_PUBLIC)
+
+
+def __getattr__(name: str):
+    if name not in _PUBLIC:
+        raise AttributeError(f"module 'dtwin_jax.update' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_PUBLIC[name]), name)
+    globals()[name] = value
+    return value

@@ -21,10 +21,11 @@ from dtwin_jax.errors import DataError
 from dtwin_jax.estimate import measured_index, state_smoother
 from dtwin_jax.library import Library, check_columns
 from dtwin_jax.measurement import smooth
+from dtwin_jax.progress import Stages
 from dtwin_jax.systems import LinearSecondOrder, check_interpolation
 from dtwin_jax.targets import input_output_targets, smoothed_input_output_stats
-from dtwin_jax.update.output_error import refine_output_error
 from dtwin_jax.update.lifecycle import check_previous, updated_history, with_previous
+from dtwin_jax.update.output_error import refine_output_error
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 from dtwin_jax.update.sampling import _sample_equations, numpy_stats, posteriors, resolve_library
 
@@ -90,37 +91,29 @@ def update_input_output(
     elif smoothing == "savgol" and not savgol_design_ok(nominal, rec.dt):
         warnings.append("Savitzky-Golay filters cannot reach 8x the highest natural frequency below "
                         "Nyquist: rate estimates biased (smoothing='statespace' avoids this)")
-    if partial or smoothing == "statespace":
-        xs, rates, smoothing_info = state_smoother(
-            nominal, rec.dt, rec.x, x_index, rec.u, rec.xdot, xdot_index, interpolation=interpolation
-        )
-        rate_source = "state-space smoother"
-        correct = False
-    else:
-        xs, smoothing_info = denoise_states(rec, nominal, smoothing)
-        if rec.xdot is not None:
-            rates = rec.xdot
-            rate_source = "measured"
-        else:
-            rates = np.asarray(smooth(rec.x, hw, order=4, deriv=1, dt=rec.dt))
-            rate_source = f"savitzky-golay derivative (order 4, half width {hw})"
-        correct = rec.xdot is not None and smoothing is not None
+    stages = Stages(progress, 4 + refine, "input-output update")
+    with stages("states and rates"):
+        xs, rates, smoothing_info, rate_source, correct = _states_and_rates(
+            rec, nominal, smoothing, partial, x_index, xdot_index, interpolation, hw)
     R, N, m = xs.shape
-    check_columns(np.asarray(lib(xs.reshape(R * N, m), rec.u.reshape(R * N, -1))), lib.names)
-    # The same jitted chain as the batched studies (dtwin_jax.studies).
-    stats, noise_var = smoothed_input_output_stats(nominal, lib, xs, rec.u, rates, hw, correct_inputs=correct)
-    n_eff = None
-    if rate_source == "state-space smoother":
-        stats, n_eff = _autocorrelation_corrected(stats, nominal, lib, xs, rec.u, rates)
-    stats = with_previous(stats, "drift", previous, forget)
-    trace = _sample_equations(stats, settings, seed, progress)
+    with stages("library statistics"):
+        check_columns(np.asarray(lib(xs.reshape(R * N, m), rec.u.reshape(R * N, -1))), lib.names)
+        # The same jitted chain as the batched studies (dtwin_jax.studies).
+        stats, noise_var = smoothed_input_output_stats(nominal, lib, xs, rec.u, rates, hw, correct_inputs=correct)
+        n_eff = None
+        if rate_source == "state-space smoother":
+            stats, n_eff = _autocorrelation_corrected(stats, nominal, lib, xs, rec.u, rates)
+        stats = with_previous(stats, "drift", previous, forget)
+    with stages("sampling"):
+        trace = _sample_equations(stats, settings, seed, progress)
     names = nominal.state_names
-    equations = posteriors(trace, [names[i] for i in nominal.regressed_index], "drift", lib.names, pip_threshold)
-    residual = _input_output_residuals(nominal, lib, xs, rec.u, rates, equations)
-    checks = {
-        e.state: residual_checks(residual[j], xs, nominal.velocity_index, names)
-        for j, e in enumerate(equations)
-    }
+    with stages("posterior and residual checks"):
+        equations = posteriors(trace, [names[i] for i in nominal.regressed_index], "drift", lib.names, pip_threshold)
+        residual = _input_output_residuals(nominal, lib, xs, rec.u, rates, equations)
+        checks = {
+            e.state: residual_checks(residual[j], xs, nominal.velocity_index, names)
+            for j, e in enumerate(equations)
+        }
     if warnings:
         checks["preprocessing"] = {"ok": False, "warnings": warnings}
     result = UpdateResult(
@@ -147,15 +140,32 @@ def update_input_output(
         history=updated_history(previous, "input-output", rec, forget, equations, time.perf_counter() - start),
     )
     if not refine:
+        stages.close()
         return result
     noise = np.sqrt(np.mean((rec.x - xs[..., list(x_index)]) ** 2, axis=(0, 1)))
     try:
-        result = refine_output_error(result, rec.t, rec.x, rec.u, x_names=[names[i] for i in x_index],
+        with stages("output-error refinement"), stages:
+            result = refine_output_error(result, rec.t, rec.x, rec.u, x_names=[names[i] for i in x_index],
                                      x0=xs[:, 0], noise_std=np.maximum(noise, 1e-9 * np.std(rec.x, axis=(0, 1))),
                                      input_noise_std=None if noise_var is None else np.sqrt(noise_var))
     except DataError as e:  # the Gibbs twin stands; say why it was not refined
         checks["refinement"] = {"ok": False, "warnings": [str(e)]}
     return dataclasses.replace(result, seconds=time.perf_counter() - start)
+
+
+def _states_and_rates(rec, nominal, smoothing, partial, x_index, xdot_index, interpolation, hw):
+    """Denoised or estimated states ``(R, N, m)`` and their rates, a description of the
+    smoothing, where the rates came from, and whether the input-noise correction applies."""
+    if partial or smoothing == "statespace":
+        xs, rates, info = state_smoother(
+            nominal, rec.dt, rec.x, x_index, rec.u, rec.xdot, xdot_index, interpolation=interpolation
+        )
+        return xs, rates, info, "state-space smoother", False
+    xs, info = denoise_states(rec, nominal, smoothing)
+    if rec.xdot is not None:
+        return xs, rec.xdot, info, "measured", smoothing is not None
+    rates = np.asarray(smooth(rec.x, hw, order=4, deriv=1, dt=rec.dt))
+    return xs, rates, info, f"savitzky-golay derivative (order 4, half width {hw})", False
 
 
 def denoise_states(records: Records, nominal: LinearSecondOrder, smoothing="auto") -> tuple:
@@ -190,7 +200,7 @@ def _autocorrelation_corrected(stats, nominal, lib, xs, u, rates) -> tuple[sampl
     velocity cross-terms at PIP 1). The residuals of a least-squares fit on the whole
     library give the effective size (arviz's ESS, summed over records); scaling the
     statistics by `n_eff / n` keeps their estimates and widens the posterior to match."""
-    import arviz as az
+    import arviz_stats as az
 
     R, N, m = xs.shape
     x, uu = jnp.asarray(xs).reshape(R * N, m), jnp.asarray(u).reshape(R * N, -1)

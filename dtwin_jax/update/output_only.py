@@ -18,6 +18,7 @@ from dtwin_jax.checks import residual_checks
 from dtwin_jax.data import check_records
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_library
+from dtwin_jax.progress import Stages
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.update.lifecycle import check_previous, updated_history, with_previous
 from dtwin_jax.update.output_only_stats import brownian_variance, diffusion_statistics, output_only_drift_stats
@@ -67,38 +68,44 @@ def update_output_only(
         raise DataError(f"re-update needs the previous diffusion library '{previous.preprocessing.get('diffusion_library')}'")
     R, N, m = rec.x.shape
     dt = rec.dt
-    noise_var = kramers_moyal.noise_variance(rec.x)
-    check_columns(np.asarray(lib(rec.x.reshape(-1, m)[:: max(1, R * N // 20000)])), lib.names)
-    drift_stats, margin = output_only_drift_stats(nominal, lib, rec.x, dt, noise_var, jax.random.key(seed))
+    stages = Stages(progress, 5, "output-only update")
+    with stages("drift statistics (Kramers-Moyal)"):
+        noise_var = kramers_moyal.noise_variance(rec.x)
+        check_columns(np.asarray(lib(rec.x.reshape(-1, m)[:: max(1, R * N // 20000)])), lib.names)
+        drift_stats, margin = output_only_drift_stats(nominal, lib, rec.x, dt, noise_var, jax.random.key(seed))
+        drift_stats = with_previous(drift_stats, "drift", previous, forget)
     names = nominal.state_names
     regressed = [names[i] for i in nominal.regressed_index]
-    drift_stats = with_previous(drift_stats, "drift", previous, forget)
-    trace = _sample_equations(drift_stats, settings, seed, progress)
-    drift = posteriors(trace, regressed, "drift", lib.names, pip_threshold)
-    # One step's mean drift: friction's sign averaged over half a step's Brownian increment.
-    residual_var = np.array([e.sigma2.mean() for e in drift])
-    gamma_drift = brownian_variance(nominal, dt, noise_var, residual_var)
-    step_smoothing = jnp.zeros(m).at[jnp.asarray(nominal.velocity_index)].set(0.5 * dt * gamma_drift)
-    step = statespace.DriftStep.from_coefficients(
-        nominal, lib, np.stack([e.coefficients for e in drift]), dt, step_smoothing
-    )
-    fit = diffusion_statistics(step, dlib, rec.x, noise_var)
-    check_columns(np.asarray(fit.columns), dlib.names)
-    gamma, fitted_noise, lin, y = fit.gamma, fit.noise, fit.lin, fit.segments
-    gamma_var = np.diag(np.asarray(fit.gamma_cov))
-    stats = with_previous(fit.stats, "diffusion", previous, forget)
-    trace = _sample_equations(stats, settings, seed + 1, progress)
-    velocities = [names[i] for i in nominal.velocity_index]
-    diffusion = posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
+    with stages("drift sampling"):
+        trace = _sample_equations(drift_stats, settings, seed, progress)
+        drift = posteriors(trace, regressed, "drift", lib.names, pip_threshold)
+    with stages("diffusion likelihood (Kalman)"):
+        # One step's mean drift: friction's sign averaged over half a step's Brownian increment.
+        residual_var = np.array([e.sigma2.mean() for e in drift])
+        gamma_drift = brownian_variance(nominal, dt, noise_var, residual_var)
+        step_smoothing = jnp.zeros(m).at[jnp.asarray(nominal.velocity_index)].set(0.5 * dt * gamma_drift)
+        step = statespace.DriftStep.from_coefficients(
+            nominal, lib, np.stack([e.coefficients for e in drift]), dt, step_smoothing
+        )
+        fit = diffusion_statistics(step, dlib, rec.x, noise_var)
+        check_columns(np.asarray(fit.columns), dlib.names)
+        gamma, fitted_noise, lin, y = fit.gamma, fit.noise, fit.lin, fit.segments
+        gamma_var = np.diag(np.asarray(fit.gamma_cov))
+        stats = with_previous(fit.stats, "diffusion", previous, forget)
+    with stages("diffusion sampling"):
+        trace = _sample_equations(stats, settings, seed + 1, progress)
+        velocities = [names[i] for i in nominal.velocity_index]
+        diffusion = posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
     # The drift's posterior-predictive check: one-step innovations of the velocities under
     # the fitted drift and diffusion, white and unpredictable from the past when it fits.
-    vel = tuple(int(v) for v in nominal.velocity_index)
-    innov, predicted = statespace.standardized_innovations(lin, y, fitted_noise, gamma, vel)
-    predicted = np.asarray(predicted)
-    checks = {
-        names[v]: residual_checks(np.asarray(innov[..., j]), predicted, vel, names)
-        for j, v in enumerate(vel)
-    }
+    with stages("residual checks"), stages:
+        vel = tuple(int(v) for v in nominal.velocity_index)
+        innov, predicted = statespace.standardized_innovations(lin, y, fitted_noise, gamma, vel)
+        predicted = np.asarray(predicted)
+        checks = {
+            names[v]: residual_checks(np.asarray(innov[..., j]), predicted, vel, names)
+            for j, v in enumerate(vel)
+        }
     for state, mg in zip(regressed, np.asarray(margin)):
         checks[f"{state} noise correction"] = margin_check(float(mg))
     return UpdateResult(

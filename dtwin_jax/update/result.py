@@ -162,7 +162,7 @@ class UpdateResult:
 
     def to_arviz(self):
         """All equations' draws in one arviz DataTree (variables ``theta_<state>`` etc.)."""
-        import arviz as az
+        import arviz_base as az
 
         posterior, dims, coords = {}, {}, {}
         for e in self.equations:
