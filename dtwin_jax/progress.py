@@ -5,6 +5,7 @@ seconds (compilation included) runs silently."""
 from __future__ import annotations
 
 import contextlib
+import time
 
 __all__ = ["Stages"]
 
@@ -13,9 +14,11 @@ class Stages:
     """``stages = Stages(enabled, total, "update")``; ``with stages("sampling"): ...``.
 
     ``total``: the number of stages announced (the bar's length). Disabled: no output and
-    no tqdm import."""
+    no tqdm import. ``seconds`` maps each stage to its wall time (kept either way; JAX runs
+    asynchronously, so a stage should end by blocking on its results)."""
 
     def __init__(self, enabled: bool, total: int, desc: str):
+        self.seconds: dict[str, float] = {}
         self._bar = None
         if enabled:
             from tqdm.auto import tqdm
@@ -25,12 +28,13 @@ class Stages:
 
     @contextlib.contextmanager
     def __call__(self, name: str):
-        if self._bar is None:
-            yield
-            return
-        self._bar.set_postfix_str(name)
+        start = time.perf_counter()
+        if self._bar is not None:
+            self._bar.set_postfix_str(name)
         yield
-        self._bar.update(1)
+        self.seconds[name] = round(time.perf_counter() - start, 3)
+        if self._bar is not None:
+            self._bar.update(1)
 
     def close(self) -> None:
         if self._bar is not None:

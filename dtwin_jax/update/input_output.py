@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import time
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -103,9 +104,9 @@ def update_input_output(
         n_eff = None
         if rate_source == "state-space smoother":
             stats, n_eff = _autocorrelation_corrected(stats, nominal, lib, xs, rec.u, rates)
-        stats = with_previous(stats, "drift", previous, forget)
+        stats = jax.block_until_ready(with_previous(stats, "drift", previous, forget))
     with stages("sampling"):
-        trace = _sample_equations(stats, settings, seed, progress)
+        trace = jax.block_until_ready(_sample_equations(stats, settings, seed, progress))
     names = nominal.state_names
     with stages("posterior and residual checks"):
         equations = posteriors(trace, [names[i] for i in nominal.regressed_index], "drift", lib.names, pip_threshold)
@@ -134,6 +135,7 @@ def update_input_output(
             "input_noise_std": None if noise_var is None else np.sqrt(noise_var).tolist(),
             "samples": int(R * N),
             "effective_samples": None if n_eff is None else n_eff.tolist(),
+            "stage_seconds": stages.seconds,
         },
         checks=checks,
         statistics={"drift": numpy_stats(stats)},

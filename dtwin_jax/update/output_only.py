@@ -73,11 +73,11 @@ def update_output_only(
         noise_var = kramers_moyal.noise_variance(rec.x)
         check_columns(np.asarray(lib(rec.x.reshape(-1, m)[:: max(1, R * N // 20000)])), lib.names)
         drift_stats, margin = output_only_drift_stats(nominal, lib, rec.x, dt, noise_var, jax.random.key(seed))
-        drift_stats = with_previous(drift_stats, "drift", previous, forget)
+        drift_stats = jax.block_until_ready(with_previous(drift_stats, "drift", previous, forget))
     names = nominal.state_names
     regressed = [names[i] for i in nominal.regressed_index]
     with stages("drift sampling"):
-        trace = _sample_equations(drift_stats, settings, seed, progress)
+        trace = jax.block_until_ready(_sample_equations(drift_stats, settings, seed, progress))
         drift = posteriors(trace, regressed, "drift", lib.names, pip_threshold)
     with stages("diffusion likelihood (Kalman)"):
         # One step's mean drift: friction's sign averaged over half a step's Brownian increment.
@@ -91,7 +91,7 @@ def update_output_only(
         check_columns(np.asarray(fit.columns), dlib.names)
         gamma, fitted_noise, lin, y = fit.gamma, fit.noise, fit.lin, fit.segments
         gamma_var = np.diag(np.asarray(fit.gamma_cov))
-        stats = with_previous(fit.stats, "diffusion", previous, forget)
+        stats = jax.block_until_ready(with_previous(fit.stats, "diffusion", previous, forget))
     with stages("diffusion sampling"):
         trace = _sample_equations(stats, settings, seed + 1, progress)
         velocities = [names[i] for i in nominal.velocity_index]
@@ -128,6 +128,7 @@ def update_output_only(
             "diffusion_effective_samples": np.asarray(stats.n).tolist(),
             "records": int(R),
             "samples": int(R * N),
+            "stage_seconds": stages.seconds,
         },
         checks=checks,
         statistics={"drift": numpy_stats(drift_stats), "diffusion": numpy_stats(stats)},
