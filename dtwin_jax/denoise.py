@@ -23,6 +23,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from dtwin_jax import aot
 from dtwin_jax.kalman import kalman_filter, newton_log_variances, rts_smoother
 from dtwin_jax.measurement import (
     highest_natural_frequency_hz,
@@ -124,7 +125,11 @@ def kinematic_smoother(
     xdot = jnp.asarray(xdot)
     if half_width is None:
         half_width = auto_half_width(nominal, dt, x.shape[0])
-    return _kinematic_smoother(nominal, dt, x, xdot, None if u is None else jnp.asarray(u), int(half_width))
+    u = None if u is None else jnp.asarray(u)
+    hw = int(half_width)
+    # A new process (the command line) reuses the traced program: see dtwin_jax.aot.
+    return aot.call("kinematic_smoother", lambda n, a, b, c: _kinematic_smoother(n, dt, a, b, c, hw),
+                    (nominal, x, xdot, u), static=(float(dt), hw), unflatten=lambda leaves: leaves[0])
 
 
 @eqx.filter_jit

@@ -1,13 +1,46 @@
-"""Progress of an update's stages on standard error (tqdm), for the command line and for
-notebooks: one bar step per stage, its name shown while it runs, so that no stage that takes
-seconds (compilation included) runs silently."""
+"""Progress on standard error (tqdm), for the command line and for notebooks.
+
+* :class:`Stages`: an update's stages, one bar step each, its name shown while it runs, so
+  that no stage that takes seconds (compilation included) runs silently.
+* :class:`Bar` and :func:`tick`: progress from inside a compiled program (the sampler's
+  sweeps, a study's problems): the program calls ``jax.debug.callback(tick, n)`` and the
+  open bar, if any, advances by ``n``.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import time
 
-__all__ = ["Stages"]
+__all__ = ["Stages", "Bar", "tick"]
+
+_BAR: list = [None]  # the open Bar's tqdm, which tick() advances
+
+
+def tick(n=1) -> None:
+    """Advance the open :class:`Bar` by ``n`` (a host callback; nothing when none is open)."""
+    if _BAR[0] is not None:
+        _BAR[0].update(int(n))
+
+
+class Bar:
+    """``with Bar(show, total, desc):`` a tqdm bar that :func:`tick` advances, or nothing."""
+
+    def __init__(self, show: bool, total: int, desc: str):
+        self.show, self.total, self.desc = show, total, desc
+
+    def __enter__(self):
+        if self.show:
+            from tqdm.auto import tqdm
+
+            _BAR[0] = tqdm(total=self.total, desc=self.desc, leave=False)
+        return self
+
+    def __exit__(self, *exc):
+        if _BAR[0] is not None:
+            _BAR[0].close()
+        _BAR[0] = None
+        return False
 
 
 class Stages:

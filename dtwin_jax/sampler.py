@@ -403,7 +403,7 @@ def sample(
     max_active: int | None = None,
     chain_method: str | None = None,
     progress: bool = False,
-    chunk: int | None = None,
+    ticks: int = 0,
     init_strategy: str = "dispersed",
 ) -> GibbsTrace:
     """Standardise, run ``num_chains`` chains (vmapped) and return draws in physical units.
@@ -419,18 +419,24 @@ def sample(
     ``chain_method`` is ``"vectorized"`` (vmap over chains) or ``"sequential"`` (``lax.map``);
     the default picks vectorized on accelerators and sequential on CPU, where XLA runs the
     vmapped indicator loop 2-4x slower per chain (measured in benchmarks/sampler_speed.py).
-    Jittable and vmappable (over ``key`` and ``stats``) when ``progress`` is False. With
-    ``progress`` the chains advance in chunks of ``chunk`` sweeps between updates of a progress
-    bar; the draws are identical either way.
+    Jittable and vmappable (over ``key`` and ``stats``) when ``progress`` is False.
+    ``progress``: show a progress bar of the sweeps (runs the compiled chains with ``ticks``
+    of 1% of the sweeps). ``ticks > 0`` (static): every ``ticks`` sweeps each chain calls
+    :func:`dtwin_jax.progress.tick` from inside the compiled loop, which advances a bar the
+    caller opened (:class:`dtwin_jax.progress.Bar`). The draws are identical either way.
     """
     scaled, col, ys = standardize(stats)
     total = num_burnin + num_draws
     keys, states = _setup(key, scaled, prior, p0, v_s, max_active, num_chains, total, init_strategy)
     method = chain_method or default_batch_method()
     if progress:
-        trace = _run_with_progress(keys, states, scaled, prior, max_active, method, total, chunk)
+        from dtwin_jax.progress import Bar
+
+        ticks = max(1, total // 100)
+        with Bar(True, num_chains * (total // ticks) * ticks, "Gibbs sweeps"):
+            _, trace = jax.block_until_ready(_run_chains_jit(keys, states, scaled, prior, max_active, method, ticks))
     else:
-        _, trace = _run_chains(keys, states, scaled, prior, max_active, method)
+        _, trace = _run_chains(keys, states, scaled, prior, max_active, method, ticks)
     trace = jax.tree.map(lambda a: a[:, num_burnin:], trace)
     factor = ys / col
     return trace._replace(theta=trace.theta * factor, sigma2=trace.sigma2 * ys**2)
@@ -509,16 +515,25 @@ def _setup(key, scaled, prior, p0, v_s, max_active, num_chains, total, init_stra
     return keys, states
 
 
-def _run_keys(keys, state, stats, prior, max_active=None):
-    """Like :func:`run_chain` but from explicit per-step keys, so chunking cannot change draws."""
+def _run_keys(keys, state, stats, prior, max_active=None, ticks: int = 0):
+    """Like :func:`run_chain` but from explicit per-step keys; ``ticks > 0``: a progress tick
+    (:func:`dtwin_jax.progress.tick`) every ``ticks`` sweeps."""
 
-    def one(state, key):
+    def one(carry, key):
+        state, i = carry
         state, info = step(key, state, stats, prior, max_active)
-        return state, GibbsTrace(
+        if ticks:
+            from dtwin_jax.progress import tick
+
+            # A chain's own value as the argument: under vmap, one call per chain.
+            jax.lax.cond((i + 1) % ticks == 0, lambda: jax.debug.callback(lambda _: tick(ticks), state.sigma2),
+                         lambda: None)
+        return (state, i + 1), GibbsTrace(
             state.gamma, state.theta, state.sigma2, state.v_s, state.p0, info.log_marginal
         )
 
-    return jax.lax.scan(one, state, keys)
+    (state, _), trace = jax.lax.scan(one, (state, jnp.zeros((), jnp.int32)), keys)
+    return state, trace
 
 
 def default_batch_method() -> str:
@@ -535,32 +550,17 @@ def batch_map(fn, method: str, *args):
     raise ValueError(f"unknown batch method {method!r} (vectorized or sequential)")
 
 
-def _run_chains(keys, states, stats, prior, max_active, method):
-    return batch_map(lambda k, s: _run_keys(k, s, stats, prior, max_active), method, keys, states)
+def _run_chains(keys, states, stats, prior, max_active, method, ticks=0):
+    return batch_map(lambda k, s: _run_keys(k, s, stats, prior, max_active, ticks), method, keys, states)
 
 
-_run_chains_jit = jax.jit(_run_chains, static_argnums=(3, 4, 5))
-
-
-def _run_with_progress(keys, states, stats, prior, max_active, method, total, chunk):
-    from tqdm.auto import tqdm
-
-    chunk = chunk or max(1, -(-total // 20))
-    pieces = []
-    with tqdm(total=total, desc="Gibbs sweeps", unit="sweep", leave=False) as bar:
-        for start in range(0, total, chunk):
-            ks = keys[:, start : start + chunk]
-            states, trace = _run_chains_jit(ks, states, stats, prior, max_active, method)
-            jax.block_until_ready(trace)
-            pieces.append(trace)
-            bar.update(ks.shape[1])
-    return jax.tree.map(lambda *a: jnp.concatenate(a, axis=1), *pieces)
+_run_chains_jit = jax.jit(_run_chains, static_argnums=(3, 4, 5, 6))
 
 
 sample_jit = jax.jit(
     sample,
     static_argnames=(
-        "num_draws", "num_burnin", "num_chains", "prior", "max_active", "chain_method", "progress", "chunk",
+        "num_draws", "num_burnin", "num_chains", "prior", "max_active", "chain_method", "progress", "ticks",
         "init_strategy",
     ),
 )

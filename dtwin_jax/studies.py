@@ -36,6 +36,7 @@ from dtwin_jax import kramers_moyal, measurement, sampler, statespace, systems, 
 from dtwin_jax.denoise import auto_half_width
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library, parse_library
+from dtwin_jax.progress import Bar, tick
 from dtwin_jax.update.output_only import DIFFUSION_LIBRARY
 from dtwin_jax.update.output_only_stats import diffusion_statistics, output_only_drift_stats
 from dtwin_jax.update.result import SamplerSettings
@@ -98,16 +99,6 @@ def study_keys(seed: int, replicates: int, num_equations: int):
     return jax.random.split(k_sim, replicates), jax.random.split(k_noise, replicates), chains
 
 
-# --- progress: a host callback per sampled problem, from inside the compiled program ------
-
-_BAR: list = [None]
-
-
-def _tick(_):
-    if _BAR[0] is not None:
-        _BAR[0].update(1)
-
-
 def _sample_and_summarise(keys, stats, truth, support, settings, method, pip_threshold):
     """Sample and summarise a batch of problems: ``keys (B,)``, ``stats`` with leading ``B``,
     ``truth``/``support (B, K)``. Only the ``(K,)`` summaries leave the loop body, so a
@@ -117,7 +108,7 @@ def _sample_and_summarise(keys, stats, truth, support, settings, method, pip_thr
     def one(key, st, tr, sup):
         trace = sampler.sample(key, st, chain_method=method, **kwargs)
         out = summarise(trace, tr, sup, pip_threshold)
-        jax.debug.callback(_tick, out.num_selected)
+        jax.debug.callback(lambda _: tick(1), out.num_selected)  # one step per problem
         return out
 
     return sampler.batch_map(one, method, keys, stats, truth, support)
@@ -224,7 +215,7 @@ def _diffusion_stats_one(example, lib, dlib, coef, x, level, key):
     regressed = tuple(int(i) for i in nominal.regressed_index)
     step = statespace.DriftStep(nominal, lib, jnp.asarray(coef), regressed, example.dt)
     fit = diffusion_statistics(step, dlib, y, kramers_moyal.noise_variance(y), window=PILOT_WINDOW)
-    jax.debug.callback(_tick, fit.gamma)
+    jax.debug.callback(lambda _: tick(1), fit.gamma)  # one step per data set
     return fit.stats
 
 
@@ -418,7 +409,7 @@ def noise_sweep(
     method = sampler.default_batch_method()
     L = levels.size
     start = time.perf_counter()
-    with _progress(progress, L * replicates * len(states), "sampled problems"):
+    with Bar(progress, L * replicates * len(states), "sampled problems"):
         if framework == "input-output":
             out = _io_program(ex, lib, jnp.asarray(levels), keys, jnp.asarray(truth), jnp.asarray(support),
                               hw, settings, method, pip_threshold)
@@ -449,7 +440,7 @@ def _diffusion_sweep(ex, lib, levels, keys, x, drift, settings, method, pip_thre
     _, noise_keys, _ = keys
     L, Rp = levels.size, x.shape[0]
     coef = np.where(drift.pip > pip_threshold, drift.mean, 0.0)  # (L, Rp, q, K)
-    with _progress(progress, L * Rp, "diffusion likelihoods"):
+    with Bar(progress, L * Rp, "diffusion likelihoods"):
         stats = _diffusion_program(ex, lib, dlib, jnp.asarray(levels), jnp.asarray(coef), x, noise_keys, batch_size)
         stats = jax.tree.map(jnp.asarray, jax.block_until_ready(stats))
     states = tuple(nominal.state_names[i] for i in nominal.velocity_index)
@@ -458,29 +449,10 @@ def _diffusion_sweep(ex, lib, levels, keys, x, drift, settings, method, pip_thre
     support = truth != 0
     d = len(states)
     chain_keys = jax.vmap(lambda k: jax.random.split(jax.random.fold_in(k, 1), d))(keys[2][:, 0])
-    with _progress(progress, L * Rp * d, "sampled diffusion problems"):
+    with Bar(progress, L * Rp * d, "sampled diffusion problems"):
         out = _sample_program(chain_keys, stats, jnp.asarray(truth), jnp.asarray(support), settings, method,
                               pip_threshold)
         out = jax.tree.map(np.asarray, out)
     return SweepResult(ex.name, "output-only", "diffusion", levels, dlib.names, states, truth, support, out,
                        settings, time.perf_counter() - start, records)
 
-
-class _progress:
-    """A tqdm bar that :func:`_tick` advances, or nothing."""
-
-    def __init__(self, show: bool, total: int, desc: str):
-        self.show, self.total, self.desc = show, total, desc
-
-    def __enter__(self):
-        if self.show:
-            from tqdm.auto import tqdm
-
-            _BAR[0] = tqdm(total=self.total, desc=self.desc, leave=False)
-        return self
-
-    def __exit__(self, *exc):
-        if _BAR[0] is not None:
-            _BAR[0].close()
-        _BAR[0] = None
-        return False

@@ -124,11 +124,20 @@ def test_depends_on_data_only_through_sufficient_statistics():
     assert S.suff_stats(np.vstack([L] * 10), np.concatenate([y] * 10)).gram.shape == (K, K)
 
 
-def test_progress_chunks_give_identical_draws():
+def test_progress_ticks_give_identical_draws_and_count_every_sweep():
+    from dtwin_jax import progress
+
     L, y, _ = _problem()
     st = S.suff_stats(L, y)
     a = S.sample(jax.random.key(2), st, num_draws=60, num_burnin=20, num_chains=2)
-    b = S.sample(jax.random.key(2), st, num_draws=60, num_burnin=20, num_chains=2, progress=True, chunk=25)
+    counted = []
+    with progress.Bar(False, 0, ""):
+        progress._BAR[0] = type("Counter", (), {"update": lambda self, n: counted.append(n), "close": lambda self: None})()
+        b = S.sample_jit(jax.random.key(2), st, num_draws=60, num_burnin=20, num_chains=2, ticks=10)
+        jax.block_until_ready(b)
+    assert sum(counted) == 2 * 80  # both chains, every sweep
+    c = S.sample(jax.random.key(2), st, num_draws=60, num_burnin=20, num_chains=2, progress=True)
+    np.testing.assert_array_equal(np.asarray(a.gamma), np.asarray(c.gamma))
     np.testing.assert_array_equal(np.asarray(a.gamma), np.asarray(b.gamma))
     np.testing.assert_allclose(np.asarray(a.theta), np.asarray(b.theta), rtol=1e-12)
 

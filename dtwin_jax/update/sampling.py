@@ -11,9 +11,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import sampler
+from dtwin_jax import aot, sampler
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, parse_library
 from dtwin_jax.posterior import EquationPosterior
+from dtwin_jax.progress import Bar
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.update.result import SamplerSettings
 
@@ -43,19 +44,22 @@ def numpy_stats(stats: sampler.SuffStats) -> sampler.SuffStats:
 
 
 def _sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed: int, progress: bool):
-    """One sampler call over the batched statistics of every equation."""
+    """One sampler call over the batched statistics of every equation; ``progress``: a bar of
+    the sweeps, advanced from inside the compiled program (the draws are the same)."""
     # Strongly typed float64: a weakly typed count (from a Python scalar) and a re-update's
     # summed one would otherwise be two jit signatures, and the sampler would compile twice.
     stats = sampler.SuffStats(*(jnp.asarray(a, dtype=jnp.float64) for a in stats))
     q = stats.xty.shape[0]
     keys = jax.random.split(jax.random.key(seed), q)
-    if progress:
-        traces = [
-            sampler.sample(keys[i], jax.tree.map(lambda a: a[i], stats), progress=True, **_sampler_kwargs(settings))
-            for i in range(q)
-        ]
-        return jax.tree.map(lambda *a: jnp.stack(a), *traces)
-    return _sample_batch(keys, stats, settings, sampler.default_batch_method())
+    method = sampler.default_batch_method()
+    total = settings.num_burnin + settings.num_draws
+    ticks = max(1, total // 100) if progress else 0
+    if progress:  # host callbacks: not serializable, so traced in every process
+        with Bar(True, q * settings.num_chains * (total // ticks) * ticks, "Gibbs sweeps"):
+            return jax.block_until_ready(_sample_batch(keys, stats, settings, method, ticks))
+    # A new process (the command line) reuses the traced program: see dtwin_jax.aot.
+    return aot.call("sampler", lambda k, st: _sample_batch(k, st, settings, method), (keys, stats),
+                    static=(settings, method), unflatten=lambda leaves: sampler.GibbsTrace(*leaves))
 
 
 def _sampler_kwargs(settings: SamplerSettings) -> dict:
@@ -71,9 +75,10 @@ def _sampler_kwargs(settings: SamplerSettings) -> dict:
     )
 
 
-@functools.partial(jax.jit, static_argnums=(2, 3))
-def _sample_batch(keys, stats, settings: SamplerSettings, method: str):
+@functools.partial(jax.jit, static_argnums=(2, 3, 4))
+def _sample_batch(keys, stats, settings: SamplerSettings, method: str, ticks: int = 0):
     # One compiled program per settings and shapes: an eager lax.map over a fresh lambda
     # would compile again on every update.
     kwargs = _sampler_kwargs(settings)
-    return sampler.batch_map(lambda k, s: sampler.sample(k, s, chain_method=method, **kwargs), method, keys, stats)
+    return sampler.batch_map(lambda k, s: sampler.sample(k, s, chain_method=method, ticks=ticks, **kwargs),
+                             method, keys, stats)
