@@ -4,13 +4,14 @@ JAX's persistent compilation cache lets a new process skip XLA compilation, not 
 lowering: for a cold ``dtwin-jax discover`` of a 1 s window those took ~2 s of ~5 (the
 kinematic smoother's Newton noise fit, the sampler). :func:`call` runs a jitted function
 through a serialized :mod:`jax.export` of it, kept beside that cache and keyed by the
-function's name, the shapes and dtypes of its arguments, its static arguments and the
-versions of jax and dtwin-jax; without a compilation cache directory, or inside another
+function's name, the shapes and dtypes of its arguments, its static arguments, the jax
+version and a digest of dtwin-jax's source; without a compilation cache directory, or inside another
 trace, it is a plain call. Programs with host callbacks (progress bars) cannot be exported.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import tempfile
@@ -34,9 +35,7 @@ def call(name: str, fn: Callable, args: tuple, static: tuple = (), unflatten: Ca
     directory = jax.config.jax_compilation_cache_dir
     if not directory or any(isinstance(a, jax.core.Tracer) for a in leaves):
         return fn(*args)  # inside another trace (vmap, jit) the caller's program holds it
-    from dtwin_jax import __version__
-
-    spec = "|".join([name, repr(static), str(tree), jax.__version__, __version__]
+    spec = "|".join([name, repr(static), str(tree), jax.__version__, _source_digest()]
                     + [f"{jax.typeof(a)}" for a in leaves])
     key = f"{name}-{hashlib.sha256(spec.encode()).hexdigest()[:32]}"
     run = _LOADED.get(key)
@@ -44,6 +43,16 @@ def call(name: str, fn: Callable, args: tuple, static: tuple = (), unflatten: Ca
         run = _load_or_export(Path(directory) / "dtwin-export" / f"{key}.bin", fn, tree, leaves)
         _LOADED[key] = run
     return unflatten(run(*leaves))
+
+
+@functools.cache
+def _source_digest() -> str:
+    """A digest of the package's own source: an edited dtwin-jax never runs a program
+    exported from the code before the edit (a version number would not change with it)."""
+    h = hashlib.sha256()
+    for path in sorted(Path(__file__).parent.rglob("*.py")):
+        h.update(path.read_bytes())
+    return h.hexdigest()
 
 
 def _load_or_export(path: Path, fn: Callable, tree, leaves) -> Callable:
