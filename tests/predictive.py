@@ -82,7 +82,7 @@ def check_degradation_forecast(ex, result, horizon=10.0, draws=30):
     new = systems.simulate_example(ex, jax.random.key(7), duration=horizon)
     twins = posterior_twins(result, draws, jax.random.key(3))
     pred = predict(twins, ex.x0, new["t"], new["u"])
-    # Refined by output error: 0.84/0.78/0.50% (the Gibbs posterior's twins: 5.1/4.7/0.6%,
+    # Refined by output error: 0.93/0.86/0.43% (the Gibbs posterior's twins: 5.1/4.7/0.6%,
     # the truth's late-damage stiffness 1.9 posterior std from its mean on this seed).
     nrmse = simulation_error(pred["mean"], new["x"])["nrmse"]
     nominal = simulation_error(simulate(ex.system.nominal, ex.x0, new["t"], new["u"])[0], new["x"])["nrmse"]

@@ -58,7 +58,7 @@ def test_example3_five_percent_identifiable_degradation_terms():
     eq3 = next(e for e in res.equations if e.state == "x3")
     assert eq3.pip[eq3.names.index("x1**2")] < 0.5
     # Output-error refinement: the stiffness pair that the Gibbs posterior puts at
-    # 1005(±3) / -1005(±9) comes to 1000.8(±0.7) / -999(±6); truth within 2 std.
+    # 1005(±3) / -1005(±9) comes to 1000.8(±0.8) / -999(±5); truth within 2 std.
     refined = {(t["state"], t["expr"]): t for t in res.refinement_json()["terms"]}
     assert set(refined) == {("x2", "x1"), ("x2", "x1*exp(-x3)"), ("x3", "x2**2")}
     for term, truth in ex.true_terms["x2"].items():

@@ -43,8 +43,9 @@ def refine_output_error(result, t, x, u, *, x_names=None, x0=None, noise_std=Non
     each state, which weighs them (default: from the residuals, re-estimated ``reweight``
     times). ``input_noise_std (n,)``: the measured input's noise (the update's
     ``preprocessing["input_noise_std"]``), whose response through the twin widens the
-    covariance (``input_draws`` Monte Carlo draws). Returns a copy of ``result`` whose ``refinement`` holds the refined posterior
-    (:func:`dtwin_jax.prediction.posterior_twins` and ``result.twin`` use it).
+    covariance (``input_draws`` Monte Carlo draws). Returns a copy of ``result`` whose
+    ``refinement`` holds the refined posterior (:func:`dtwin_jax.prediction.posterior_twins`
+    and ``result.twin`` use it).
     """
     if result.mode != "input-output":
         raise DataError("output-error refinement needs an input-output twin (its input is known)")
@@ -181,27 +182,27 @@ def _sandwich_covariance(r, J, lags: int) -> np.ndarray:
     the input's noise: coloured, small in variance but coherent with the parameters'
     sensitivities, so ``s2 (J^T J)^-1`` made intervals several times too narrow on
     random members (`benchmarks/refine.py`)."""
-    scores = np.einsum("rnpk,rnp->rnk", J, r)  # (R, N, P)
-    Jf = J.reshape(-1, J.shape[-1])
-    # Coefficients and initial states differ in scale by many orders: work normalised.
-    norm = np.linalg.norm(Jf, axis=0)
-    norm = np.where(norm > 0, norm, 1.0)
-    Hn = (Jf / norm).T @ (Jf / norm)
-    sn = scores / norm
-    meat = np.einsum("rnk,rnl->kl", sn, sn)
+    norm, Hinv = _normalised_inverse(J.reshape(-1, J.shape[-1]))
+    scores = np.einsum("rnpk,rnp->rnk", J, r) / norm  # (R, N, P)
+    meat = np.einsum("rnk,rnl->kl", scores, scores)
     for lag in range(1, lags + 1):
-        gamma = np.einsum("rnk,rnl->kl", sn[:, lag:], sn[:, :-lag])
+        gamma = np.einsum("rnk,rnl->kl", scores[:, lag:], scores[:, :-lag])
         meat += (1.0 - lag / (lags + 1.0)) * (gamma + gamma.T)
-    Hinv = np.linalg.pinv(Hn, rcond=1e-13)
     return Hinv @ meat @ Hinv / np.outer(norm, norm)
 
 
 def _input_noise_covariance(J, d) -> np.ndarray:
     """``H^-1 E[J^T d d^T J] H^-1``: the parameters' spread from input-noise responses
     ``d (S, M)`` of the weighted residual, ``J (M, P)`` its Jacobian."""
+    norm, Hinv = _normalised_inverse(J)
+    scores = d @ (J / norm)  # (S, P)
+    return Hinv @ (scores.T @ scores / d.shape[0]) @ Hinv / np.outer(norm, norm)
+
+
+def _normalised_inverse(J) -> tuple[np.ndarray, np.ndarray]:
+    """Column norms of ``J (M, P)`` and the inverse of the column-normalised ``J^T J``:
+    coefficients and initial states differ in scale by many orders."""
     norm = np.linalg.norm(J, axis=0)
     norm = np.where(norm > 0, norm, 1.0)
     Jn = J / norm
-    scores = d @ Jn  # (S, P)
-    Hinv = np.linalg.pinv(Jn.T @ Jn, rcond=1e-13)
-    return Hinv @ (scores.T @ scores / d.shape[0]) @ Hinv / np.outer(norm, norm)
+    return norm, np.linalg.pinv(Jn.T @ Jn, rcond=1e-13)
