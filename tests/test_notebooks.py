@@ -13,6 +13,7 @@ the same printed numbers). Measured on one idle core: 20 s, 42 s and 50 s.
 
 import ast
 import json
+import os
 import re
 import sys
 import time
@@ -140,6 +141,10 @@ def python3_kernel(tmp_path, monkeypatch):
     }))
     monkeypatch.setenv("JUPYTER_PATH", str(tmp_path / "jupyter"))
     monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
+    # The kernels share one compilation cache (and dtwin_jax.aot's programs) of their own:
+    # their programs are built without most optimizations, unlike the tests'.
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", os.path.join(os.environ["DTWIN_JAX_CACHE"], "notebooks"))
+    monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     monkeypatch.delenv("MPLBACKEND", raising=False)
     work = tmp_path / "work"
     work.mkdir()
