@@ -10,7 +10,7 @@ from pathlib import Path
 
 from dtwin_jax.errors import DataError
 
-__all__ = ["main"]
+__all__ = ["main", "console_main", "configure_runtime"]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -431,10 +431,20 @@ def configure_runtime(cores: str | None = None) -> dict:
     return done
 
 
+def console_main() -> int:
+    """The ``dtwin-jax`` command: :func:`configure_runtime` for this process, then :func:`main`.
+    (:func:`main` called from Python leaves the caller's process as it is.)"""
+    try:
+        configure_runtime()
+    except DataError as e:
+        print(f"dtwin-jax: error: {e}", file=sys.stderr)
+        return 2
+    return main()
+
+
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
-        configure_runtime()
         if getattr(args, "out_dir", None):
             _check_writable(args.out_dir, folder=True)
         commands = {"sweep": _sweep, "discover": _discover, "demo": _demo, "predict": _predict,
@@ -446,4 +456,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console_main())

@@ -140,3 +140,20 @@ def test_demo_end_to_end(tmp_path):
     )
     assert proc.returncode == 0, proc.stderr
     assert "x1**3" in proc.stdout
+
+
+def test_runtime_set_up_is_the_command_line_s_only(tmp_path):
+    """The `dtwin-jax` process pins itself and caches compiled programs; `main()` called from
+    Python leaves the caller's process alone; a bad DTWIN_JAX_CORES is a one-line error."""
+    import os
+
+    before = os.sched_getaffinity(0)
+    assert main(["sweep", "--levels", "2", "--out-dir", str(tmp_path / "s")]) == 2  # fails fast, after set-up
+    assert os.sched_getaffinity(0) == before
+    env = dict(os.environ, DTWIN_JAX_CORES="many")
+    proc = subprocess.run([sys.executable, "-m", "dtwin_jax.cli", "--help"], capture_output=True, text=True, env=env)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "DTWIN_JAX_CORES" in proc.stderr
+    code = "from dtwin_jax.cli import configure_runtime; import os; print(configure_runtime(), len(os.sched_getaffinity(0)))"
+    env = dict(os.environ, DTWIN_JAX_CACHE=str(tmp_path / "cache"), DTWIN_JAX_CORES="1")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
+    assert str(tmp_path / "cache") in out and out.strip().endswith(" 1")
