@@ -111,7 +111,7 @@ def posterior_twins(result, num_draws: int = 100, key=None) -> UpdatedTwin:
         mean, cov = np.asarray(ref["mean"]), np.asarray(ref["cov"]).reshape(len(ref["mean"]), -1)
         draws = np.asarray(jax.random.multivariate_normal(jax.random.fold_in(key, 1), mean, cov, (num_draws,),
                                                           method="svd"))
-        coef = refined_coefficients(np.zeros((num_draws, *twin.coefficients.shape)), ref["index"], draws)
+        coef = refined_coefficients((num_draws, *twin.coefficients.shape), ref["index"], draws)
     else:
         coef = np.stack([e.theta[c, k] for e in drift], axis=1)  # (S, q, K)
     if not diffusion:
@@ -122,13 +122,12 @@ def posterior_twins(result, num_draws: int = 100, key=None) -> UpdatedTwin:
                        twin.interpolation)
 
 
-def refined_coefficients(coef, index, values) -> np.ndarray:
-    """`coef (..., q, K)` with the flat entries `index (P,)` of each `(q, K)` block set to
-    `values (..., P)`, all others zero (an output-error refinement's terms)."""
-    coef = np.asarray(coef, np.float64)
-    flat = np.zeros(coef.shape[:-2] + (coef.shape[-2] * coef.shape[-1],))
+def refined_coefficients(shape, index, values) -> np.ndarray:
+    """Coefficients of `shape (..., q, K)`: the flat entries `index (P,)` of each `(q, K)`
+    block are `values (..., P)`, all others zero (an output-error refinement's terms)."""
+    flat = np.zeros(tuple(shape[:-2]) + (shape[-2] * shape[-1],))
     flat[..., np.asarray(index, int)] = values
-    return flat.reshape(coef.shape)
+    return flat.reshape(shape)
 
 
 def diffusion_terms(result, dcoef) -> tuple[Library, jax.Array]:

@@ -75,7 +75,7 @@ class UpdateResult:
         index = tuple(self.state_names.index(e.state) for e in drift)
         coef = np.stack([e.coefficients for e in drift]) if drift else np.zeros((0, self.library.K))
         if self.refinement is not None:
-            coef = refined_coefficients(coef, self.refinement["index"], self.refinement["mean"])
+            coef = refined_coefficients(coef.shape, self.refinement["index"], self.refinement["mean"])
         diffusion = [e for e in self.equations if e.kind == "diffusion"]
         interpolation = self.preprocessing.get("input_interpolation", "held")
         if not diffusion:
