@@ -5,8 +5,9 @@ lowering: for a cold ``dtwin-jax discover`` of a 1 s window those took ~2 s of ~
 kinematic smoother's Newton noise fit, the sampler). :func:`call` runs a jitted function
 through a serialized :mod:`jax.export` of it, kept beside that cache and keyed by the
 function's name, the shapes and dtypes of its arguments, its static arguments, the jax
-version and a digest of dtwin-jax's source; without a compilation cache directory, or inside another
-trace, it is a plain call. Programs with host callbacks (progress bars) cannot be exported.
+version and a digest of dtwin-jax's source; without a compilation cache directory, or
+inside another trace, it is a plain call. Programs with host callbacks (progress bars)
+cannot be exported.
 """
 
 from __future__ import annotations

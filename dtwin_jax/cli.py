@@ -406,10 +406,11 @@ def configure_runtime(cores: str | None = None) -> dict:
     * A persistent XLA compilation cache (``$DTWIN_JAX_CACHE``, default
       ``~/.cache/dtwin-jax/jax``; ``DTWIN_JAX_CACHE=off`` disables it): a rerun reuses the
       compiled sampler, smoothers and simulators instead of compiling them again.
-    * Threading (``cores``, else ``$DTWIN_JAX_CORES``): ``"1"`` (the default on CPU) pins the
-      process to one core, ``"all"`` leaves the affinity alone. XLA's CPU thread pool spins
-      while it waits, and on a shared small machine one pinned process ran the sampler 2.7x
-      faster (README, "Performance"); on a large machine or a GPU use ``all``.
+    * Threading (``cores``, else ``$DTWIN_JAX_CORES``): ``"1"`` (the default) pins the
+      process to one core, ``"all"`` leaves the affinity alone. XLA sizes its CPU thread pool
+      from the cores it may use when it starts, and its threads spin while they wait: on this
+      2-core machine one pinned process ran a sampler chain in 0.21 s against 0.39 s
+      (``benchmarks/thread_pinning.py``); on a large machine or a GPU use ``all``.
     Returns what was set."""
     import jax
 

@@ -135,7 +135,7 @@ def update_input_output(
             "input_noise_std": None if noise_var is None else np.sqrt(noise_var).tolist(),
             "samples": int(R * N),
             "effective_samples": None if n_eff is None else n_eff.tolist(),
-            "stage_seconds": stages.seconds,
+            "stage_seconds": dict(stages.seconds),
         },
         checks=checks,
         statistics={"drift": numpy_stats(stats)},
@@ -151,8 +151,9 @@ def update_input_output(
                                      x0=xs[:, 0], noise_std=np.maximum(noise, 1e-9 * np.std(rec.x, axis=(0, 1))),
                                      input_noise_std=None if noise_var is None else np.sqrt(noise_var))
     except DataError as e:  # the Gibbs twin stands; say why it was not refined
-        checks["refinement"] = {"ok": False, "warnings": [str(e)]}
-    return dataclasses.replace(result, seconds=time.perf_counter() - start)
+        result = dataclasses.replace(result, checks={**checks, "refinement": {"ok": False, "warnings": [str(e)]}})
+    preprocessing = {**result.preprocessing, "stage_seconds": dict(stages.seconds)}  # the refinement's too
+    return dataclasses.replace(result, preprocessing=preprocessing, seconds=time.perf_counter() - start)
 
 
 def _states_and_rates(rec, nominal, smoothing, partial, x_index, xdot_index, interpolation, hw):

@@ -128,7 +128,7 @@ def update_output_only(
             "diffusion_effective_samples": np.asarray(stats.n).tolist(),
             "records": int(R),
             "samples": int(R * N),
-            "stage_seconds": stages.seconds,
+            "stage_seconds": dict(stages.seconds),
         },
         checks=checks,
         statistics={"drift": numpy_stats(drift_stats), "diffusion": numpy_stats(stats)},
