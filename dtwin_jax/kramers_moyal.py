@@ -33,6 +33,9 @@ L^2 D` for lags `L = 1, 2, 3` cancels the diffusion `Gamma` and the drift `D`.
 
 from __future__ import annotations
 
+import functools
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -331,21 +334,33 @@ def preaveraged_diffusion(
     and the window `K` in samples.
     """
     x = jnp.asarray(x)
+    e, A_n, B_n, C_n, unit, ratio = _residual_increments(nominal, x, dt, noise_var, perturbation)
+    if window is None:
+        N = x.shape[1]
+        window = int(np.clip(np.round(np.sqrt(24.0 * float(ratio))), 2, max((N - 1) // 8, 2)))
+    return _preaverage(e, A_n, B_n, C_n, unit, window), window
+
+
+@eqx.filter_jit
+def _residual_increments(nominal: LinearSecondOrder, x, dt: float, noise_var, perturbation):
+    """The velocities' increments after the drift `e (R, N-1, d)`, the noise's share in them
+    per sample (`A_n`, `B_n`, `C_n`, `(R, N, d)` each, see below), the one-step variance
+    per unit diffusion `(d,)` and the noise-to-signal ratio `()` of one increment that sets the pre-averaging window. One compiled program:
+    eagerly every primitive compiles on its own."""
     R, N, m = x.shape
     d = nominal.d
     Phi, Psi = propagators(nominal, dt)
     Psi0, Psi1 = trapezoid_propagators(nominal, dt)
     vel = jnp.arange(d, 2 * d)
     s2 = jnp.asarray(noise_var)
-    # Jitted as a whole: eagerly, each primitive of the nested vmaps compiles on its own.
-    h = jax.jit(jax.vmap(jax.vmap(_noise_corrected(perturbation, s2))))(x)  # (R, N, m)
+    h = jax.vmap(jax.vmap(_noise_corrected(perturbation, s2)))(x)  # (R, N, m)
     dZ = x[:, 1:] - x[:, :-1] @ Phi.T  # (R, N-1, m)
     e = (dZ - h[:, :-1] @ Psi0.T - h[:, 1:] @ Psi1.T)[..., vel]  # residual velocity increments
     # Noise eps_n enters e_{n-1} as a_n eps_n and e_n as -b_n eps_n (to first order), with
     # a_n = I_v - Psi1 J_n, b_n = Phi_v + Psi0 J_n, J_n the Jacobian of h at X_n. Through a
     # stiff h, displacement noise adds up over a window like an extra diffusion (example 1 at
     # 10% noise: +10%), so the whole first-order structure is kept.
-    jac = jax.jit(jax.vmap(jax.vmap(jax.jacfwd(perturbation))))(x)  # (R, N, m, m)
+    jac = jax.vmap(jax.vmap(jax.jacfwd(perturbation)))(x)  # (R, N, m, m)
     a = jnp.eye(m)[vel] - jnp.einsum("vi,rnij->rnvj", Psi1[vel], jac)  # (R, N, d, m)
     b = Phi[vel] + jnp.einsum("vi,rnij->rnvj", Psi0[vel], jac)
     # Velocity noise from the lag-one covariance of e (its only source besides the drift,
@@ -358,12 +373,17 @@ def preaveraged_diffusion(
     A_n = jnp.einsum("rnvi,i->rnv", a * a, s2)
     B_n = jnp.einsum("rnvi,i->rnv", b * b, s2)
     C_n = jnp.einsum("rnvi,i->rnv", a * b, s2)
-    if window is None:
-        second = jnp.mean(e * e, axis=(0, 1))
-        noise = jnp.mean(A_n[:, 1:] + B_n[:, :-1], axis=(0, 1))
-        pilot = jnp.maximum(second - noise, 1e-3 * second)
-        ratio = float(jnp.max(noise / pilot)) if float(jnp.max(noise)) > 0 else 0.0
-        window = int(np.clip(np.round(np.sqrt(24.0 * ratio)), 2, max((N - 1) // 8, 2)))
+    second = jnp.mean(e * e, axis=(0, 1))
+    noise = jnp.mean(A_n[:, 1:] + B_n[:, :-1], axis=(0, 1))
+    pilot = jnp.maximum(second - noise, 1e-3 * second)
+    ratio = jnp.where(jnp.max(noise) > 0, jnp.max(noise / pilot), 0.0)
+    return e, A_n, B_n, C_n, unit_gramian(nominal, dt), ratio
+
+
+@functools.partial(jax.jit, static_argnums=5)
+def _preaverage(e, A_n, B_n, C_n, unit, window: int):
+    """Noise-corrected squares of increments `e` pre-averaged over `window` samples, in units
+    of diffusion (`unit (d,)` the one-step variance per unit diffusion): `Gamma (d,)`."""
     j = np.arange(1, window) / window
     g = np.minimum(j, 1.0 - j)  # (K-1,) triangular weights
     # Pre-averaged increments ebar_k = sum_i g_i e_{k+i}, k = 0..P-1.
@@ -375,9 +395,9 @@ def preaveraged_diffusion(
     )
     g2 = float(np.sum(g * g))
     # The diffusion part: g2 times the velocity part of the one-step Gramian (~ Gamma dt).
-    Y = (ebar**2 - bias) / (g2 * unit_gramian(nominal, dt)[None, None, :])
+    Y = (ebar**2 - bias) / (g2 * unit[None, None, :])
     gamma = jnp.mean(Y, axis=(0, 1))
-    return jnp.maximum(gamma, 1e-3 * jnp.mean(jnp.abs(Y), axis=(0, 1))), window
+    return jnp.maximum(gamma, 1e-3 * jnp.mean(jnp.abs(Y), axis=(0, 1)))
 
 
 @jax.jit

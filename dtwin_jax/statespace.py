@@ -233,9 +233,14 @@ def _loglik(params, lin, y, r, velocity_index):
     return jnp.sum(jax.vmap(lambda l, yy, rr: _filter(l, yy, gamma, rr).loglik)(lin, y, noise))
 
 
-_derivatives = jax.jit(
-    lambda *a: (jax.grad(_loglik)(*a), jax.hessian(_loglik)(*a)), static_argnums=4
-)
+def _loglik_derivatives(params, lin, y, r, velocity_index):
+    """`(loglik, gradient (2d,), Hessian (2d, 2d))` of :func:`_loglik` at `params`, forward
+    over forward: one filter pass carries every direction (2d is 2-4), and a program with one
+    copy of the filter compiles in a fraction of reverse mode's time."""
+    f = lambda p: _loglik(p, lin, y, r, velocity_index)
+    first = lambda p: jax.jacfwd(lambda q: (f(q),) * 2, has_aux=True)(p)  # (g, f)
+    H, (g, value) = jax.jacfwd(lambda p: (first(p)[0], first(p)), has_aux=True)(params)
+    return value, g, H
 
 
 @eqx.filter_jit
@@ -255,10 +260,12 @@ def diffusion_mle(
     whose noise scales with each record's amplitude: a pooled variance would read the
     loud records' noise as diffusion that grows with the state); the velocities' are a
     first guess, scaled by a fitted common factor (a difference-based estimate's error of
-    0.5% of `Gamma dt` moves `Gamma` by 1%); `start (d,)` a positive first guess of `Gamma`. In each of `rounds`, the
-    transition is linearized along the states smoothed at the current values, then Newton
-    steps in the logs (at most a factor e^1.5 each, halved while the likelihood falls) find
-    the maximum. Pure and jittable (vmapped over the levels and replicates of a study).
+    0.5% of `Gamma dt` moves `Gamma` by 1%); `start (d,)` a positive first guess of `Gamma`.
+    The transition is linearized along the records, then along the states smoothed at the
+    first guess, twice; then in each of `rounds` it is linearized along the states smoothed
+    at the current values and Newton steps in the logs (at most a factor e^1.5 each,
+    halved while the likelihood falls) find the maximum. Pure and jittable (vmapped over the
+    levels and replicates of a study).
     Returns `(Gamma (d,), Gamma_cov (d, d), noise_var (R, m), lin)`: the inverse
     observed information of `Gamma` with the noise profiled out, the fitted noise variances
     and the last linearization (batched over records).
@@ -273,19 +280,21 @@ def diffusion_mle(
     params = jnp.concatenate([jnp.log(gamma0), jnp.zeros(d, y.dtype)])
 
     def round_(k, carry):
-        # Relinearize along the states smoothed at the current values, then Newton steps;
-        # round 0 only relinearizes, so the first Newton round sees two passes. One compiled
-        # body for every round (a Python loop would compile each round's filters anew).
-        params, lin, g, H = carry
-        gamma, noise = _unpack(params, r, vel)
-        lin = _linearize_records(step, _smoothed_means(lin, y, gamma, noise))
-        iterations = jnp.where(k == 0, 0, max_iter)
+        # Linearize along the current points (the records, then smoothed states), Newton
+        # steps from round 2 on, then smooth at the current values for the next round. One
+        # compiled body for every round: a Python loop, or a first linearization outside the
+        # loop, would compile the filters and the linearization once per copy.
+        params, points, lin, g, H = carry
+        lin = _linearize_records(step, points)
+        iterations = jnp.where(k < 2, 0, max_iter)
         params, g, H = _newton(params, (lin, y, r, vel), iterations, tol, d, g, H)
-        return params, lin, g, H
+        gamma, noise = _unpack(params, r, vel)
+        points = jax.lax.cond(k < rounds + 1, lambda: _smoothed_means(lin, y, gamma, noise), lambda: points)
+        return params, points, lin, g, H
 
     blank = jnp.zeros((2 * d, 2 * d), y.dtype)
-    carry = (params, _linearize_records(step, y), blank[0], blank)
-    params, lin, g, H = jax.lax.fori_loop(0, rounds + 1, round_, carry)
+    lin = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), eqx.filter_eval_shape(_linearize_records, step, y))
+    params, _, lin, g, H = jax.lax.fori_loop(0, rounds + 2, round_, (params, y, lin, blank[0], blank))
     gamma, noise = _unpack(params, r, vel)
     theta = jnp.exp(params)
     # Information in natural units, d2l/dp2 = (H_log - diag(g_log)) / (p p^T).
@@ -301,24 +310,32 @@ def _newton(params, args, max_iter, tol: float, d: int, g, H):
     times) while the likelihood falls; a scaled gradient step where it is not concave. Stops
     when the next step of `Gamma` is below `tol` (a vanishing noise may still creep to zero)
     or after `max_iter` evaluations, the last of which takes no step, so the returned
-    `(params, gradient, Hessian)` belong together (the information at the maximum); with
-    `max_iter = 0` it returns its inputs."""
+    `(params, gradient, Hessian)` belong together (the information at the maximum);
+    with `max_iter = 0` it returns its inputs. Every evaluation is one
+    :func:`_loglik_derivatives` at a trial point: accepted, or the step halved."""
 
-    def iterate(carry):
-        i, p, _, _, _ = carry
-        f = _loglik(p, *args)
-        g, H = _derivatives(p, *args)
+    def newton_step(g, H):
         newton = -jnp.linalg.solve(H, g)
         gradient = g / jnp.maximum(jnp.abs(jnp.diagonal(H)), 1.0)
-        delta = jnp.clip(jnp.where(jnp.all(jnp.linalg.eigvalsh(H) < 0), newton, gradient), -1.5, 1.5)
-        done = (jnp.max(jnp.abs(delta[:d])) < tol) | (i + 1 >= max_iter)
-        halve = lambda c: (c[0] + 1, c[1] / 2)
-        falls = lambda c: (c[0] < 6) & (_loglik(p + c[1], *args) < f)
-        _, delta = jax.lax.while_loop(falls, halve, (0, jnp.where(done, 0.0, delta)))
-        return i + 1, p + delta, done, g, H
+        return jnp.clip(jnp.where(jnp.all(jnp.linalg.eigvalsh(H) < 0), newton, gradient), -1.5, 1.5)
 
-    going = lambda c: (c[0] < max_iter) & ~c[2]
-    _, params, _, g, H = jax.lax.while_loop(going, iterate, (0, params, False, g, H))
+    def iterate(carry):
+        i, p, f, g, H, delta, halvings, _ = carry
+        f_new, g_new, H_new = _loglik_derivatives(p + delta, *args)
+        # The first evaluation (delta 0, f -inf) is always accepted.
+        accept = (f_new >= f) | (halvings >= 6)
+        p, f, g, H = jax.tree.map(lambda new, old: jnp.where(accept, new, old), (p + delta, f_new, g_new, H_new),
+                                  (p, f, g, H))
+        step = newton_step(g, H)
+        done = accept & ((jnp.max(jnp.abs(step[:d])) < tol) | (i + 1 >= max_iter))
+        delta = jnp.where(accept, step, delta / 2)
+        halvings = jnp.where(accept, 0, halvings + 1)
+        return i + 1, p, f, g, H, delta, halvings, done
+
+    going = lambda c: (c[0] < max_iter) & ~c[7]
+    zero = jnp.zeros_like(params)
+    start = (0, params, jnp.asarray(-jnp.inf, params.dtype), g, H, zero, 0, False)
+    _, params, _, g, H, _, _, _ = jax.lax.while_loop(going, iterate, start)
     return params, g, H
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import functools
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -97,6 +98,7 @@ def correction_margin(gram) -> jax.Array:
     return jnp.linalg.eigvalsh(gram / (scale[..., :, None] * scale[..., None, :]))[..., 0]
 
 
+@eqx.filter_jit
 def brownian_variance(nominal: LinearSecondOrder, dt, noise_var, residual_var) -> jax.Array:
     """The velocities' diffusion ``Gamma (d,)`` seen in the drift regression's residual
     variance ``residual_var (r,)`` (target units), less the measurement noise's share.
