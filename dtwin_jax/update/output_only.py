@@ -13,12 +13,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import kramers_moyal, statespace
+from dtwin_jax import aot, kramers_moyal, statespace
 from dtwin_jax.checks import residual_checks
 from dtwin_jax.data import check_records
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_library
 from dtwin_jax.progress import Stages
+from dtwin_jax.sampler import SuffStats
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.update.lifecycle import check_previous, updated_history, with_previous
 from dtwin_jax.update.output_only_stats import brownian_variance, diffusion_statistics, output_only_drift_stats
@@ -72,7 +73,12 @@ def update_output_only(
     with stages("drift statistics (Kramers-Moyal)"):
         noise_var = kramers_moyal.noise_variance(rec.x)
         check_columns(np.asarray(lib(rec.x.reshape(-1, m)[:: max(1, R * N // 20000)])), lib.names)
-        drift_stats, margin = output_only_drift_stats(nominal, lib, rec.x, dt, noise_var, jax.random.key(seed))
+        # A new process (the command line) reuses the traced program: see dtwin_jax.aot.
+        drift_stats, margin = aot.call(
+            "output_only_drift_stats", lambda n, xx, nv, k: output_only_drift_stats(n, lib, xx, dt, nv, k),
+            (nominal, rec.x, noise_var, jax.random.key(seed)), static=(lib, float(dt)),
+            unflatten=lambda leaves: (SuffStats(*leaves[:4]), leaves[4]),
+        )
         drift_stats = jax.block_until_ready(with_previous(drift_stats, "drift", previous, forget))
     names = nominal.state_names
     regressed = [names[i] for i in nominal.regressed_index]

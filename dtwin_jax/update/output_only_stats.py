@@ -18,7 +18,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from dtwin_jax import kramers_moyal, sampler, statespace
+from dtwin_jax import aot, kramers_moyal, sampler, statespace
 from dtwin_jax.library import Library
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.targets import equation_stats
@@ -156,7 +156,10 @@ def diffusion_statistics(
         nominal, x, step.dt, noise_var, step.perturbation, window=window
     )
     y = statespace.segments(x)
-    gamma, gamma_cov, noise, lin = statespace.diffusion_mle(step, y, noise_var, pilot)
+    gamma, gamma_cov, noise, lin = aot.call(  # a new process reuses the traced program
+        "diffusion_mle", statespace.diffusion_mle, (step, y, noise_var, pilot),
+        unflatten=lambda leaves: (*leaves[:3], statespace.Linearization(*leaves[3:])),
+    )
     vel = tuple(int(v) for v in nominal.velocity_index)
     Y, X = statespace.diffusion_targets(lin, y, noise, gamma, vel)
     Y = Y.reshape(-1, nominal.d)
