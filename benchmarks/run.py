@@ -349,6 +349,13 @@ def full_update_section(quick: bool) -> Section:
         shell = lambda: subprocess.run(cmd, env=env, check=True, capture_output=True)
         rows.append({"update": "dtwin-jax discover (same window, new process; warm: compilation cache filled)",
                      "cold s": _timed(shell), "warm s": _timed(shell)})
+        np.savez(f"{tmp}/oo.npz", t=sde["t"], x=x)
+        write_nominal(f"{tmp}/nominal_oo.toml", oo.system.nominal)
+        cmd_oo = [sys.executable, "-m", "dtwin_jax.cli", "discover", f"{tmp}/oo.npz", "--nominal",
+                  f"{tmp}/nominal_oo.toml", "--library", oo.library_output_only, "--quiet"]
+        shell_oo = lambda: subprocess.run(cmd_oo, env=env, check=True, capture_output=True)
+        rows.append({"update": f"dtwin-jax discover, output-only {records} x 1 s (new process; warm: caches filled)",
+                     "cold s": _timed(shell_oo), "warm s": _timed(shell_oo)})
     return Section("Full updates (example 1, 5% noise)", rows,
                    ["cold: the first update in a process (tracing and XLA compilation); warm: the same "
                     "update again (a new window of the same shape costs the same)."])
