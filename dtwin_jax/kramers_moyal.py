@@ -42,7 +42,7 @@ import numpy as np
 from jax.scipy.linalg import expm
 
 from dtwin_jax import sampler
-from dtwin_jax.library import Library
+from dtwin_jax.library import Library, monomials
 from dtwin_jax.systems import LinearSecondOrder
 
 __all__ = [
@@ -119,39 +119,38 @@ def _directional(fn, x, e):
 
 
 def _derivatives(lib: Library, x, smoothing=None):
-    """Per state `j`, `d_j L` and `d_j^2 L`, each `(m, P, K)`, at `x (P, m)`: monomials in
-    closed form, the other families by forward over forward differentiation, block by block
-    in library order (on example 2's 210 monomials the differentiated version took 0.8 s per
-    20000 samples, most of the drift statistics' time)."""
-    m = x.shape[-1]
-    eye = jnp.eye(m, dtype=x.dtype)
+    """Per state `j`, `d_j L` and `d_j^2 L`, each `(m, P, K)`, at `x (P, m)`, block by block
+    in library order: monomials in closed form, the other families by differentiation (on
+    example 2's 210 monomials that took 0.8 s per 20000 samples, most of the drift
+    statistics' time)."""
     d1, d2, start = [], [], 0
     for family, idx in lib.blocks:
         if family == "poly":
-            p1, p2 = _monomial_derivatives(x, np.asarray(idx, dtype=int).reshape(len(idx), m))
+            p1, p2 = _monomial_derivatives(x, np.asarray(idx, dtype=int).reshape(len(idx), -1))
         else:
-            f = lambda z, block=lib.subset(np.arange(start, start + len(idx))): block.eval_single(z, None, smoothing)
-            p1, p2 = (jnp.moveaxis(a, 1, 0) for a in jax.vmap(lambda xk: jax.vmap(lambda e: _directional(f, xk, e))(eye))(x))
+            p1, p2 = _differentiated(lib.subset(np.arange(start, start + len(idx))), x, smoothing)
         d1.append(p1)
         d2.append(p2)
         start += len(idx)
     return jnp.concatenate(d1, axis=-1), jnp.concatenate(d2, axis=-1)
 
 
+def _differentiated(lib: Library, x, smoothing=None):
+    """`d_j L` and `d_j^2 L`, each `(m, P, K)`, at `x (P, m)`, forward over forward."""
+    f = lambda z: lib.eval_single(z, None, smoothing)
+    eye = jnp.eye(x.shape[-1], dtype=x.dtype)
+    d1, d2 = jax.vmap(lambda xk: jax.vmap(lambda e: _directional(f, xk, e))(eye))(x)
+    return jnp.moveaxis(d1, 1, 0), jnp.moveaxis(d2, 1, 0)
+
+
 def _monomial_derivatives(x, exponents):
     """`d_j x^e = e_j x^(e - u_j)` and `d_j^2 x^e = e_j (e_j - 1) x^(e - 2 u_j)`, each
     `(m, P, Kp)`, of the monomials `exponents (Kp, m)` at `x (P, m)`."""
-    m = x.shape[-1]
-    powers = [jnp.ones_like(x), x]
-    for _ in range(max(int(exponents.max()) - 1, 0)):
-        powers.append(powers[-1] * x)
-    powers = jnp.stack(powers, axis=-1)  # (P, m, degree + 1)
-    monomials = lambda e: jnp.prod(powers[:, np.arange(m)[None, :], np.maximum(e, 0)], axis=-1)
+    unit = np.eye(x.shape[-1], dtype=int)
     d1, d2 = [], []
-    for j in range(m):
-        e = exponents[:, j]
-        d1.append(e * monomials(exponents - np.eye(m, dtype=int)[j]))
-        d2.append(e * (e - 1) * monomials(exponents - 2 * np.eye(m, dtype=int)[j]))
+    for j, e in enumerate(exponents.T):
+        d1.append(e * monomials(x, np.maximum(exponents - unit[j], 0)))
+        d2.append(e * (e - 1) * monomials(x, np.maximum(exponents - 2 * unit[j], 0)))
     return jnp.stack(d1), jnp.stack(d2)
 
 
@@ -387,8 +386,8 @@ def preaveraged_diffusion(
 def _residual_increments(nominal: LinearSecondOrder, x, dt: float, noise_var, perturbation):
     """The velocities' increments after the drift `e (R, N-1, d)`, the noise's share in them
     per sample (`A_n`, `B_n`, `C_n`, `(R, N, d)` each, see below), the one-step variance
-    per unit diffusion `(d,)` and the noise-to-signal ratio `()` of one increment that sets the pre-averaging window. One compiled program:
-    eagerly every primitive compiles on its own."""
+    per unit diffusion `(d,)` and the noise-to-signal ratio `()` of one increment, which sets
+    the pre-averaging window. One compiled program: eagerly every primitive compiles apart."""
     R, N, m = x.shape
     d = nominal.d
     Phi, Psi = propagators(nominal, dt)

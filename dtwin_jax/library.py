@@ -162,6 +162,18 @@ def _smoothed_xabs(x, c):
     return (x**2 + c) * _smoothed_sign(x, c) + x * bump
 
 
+def monomials(x, exponents):
+    """`prod_j x_j**e_j`, `(..., k)`, of the exponents `(k, m)` (non-negative ints) at
+    `x (..., m)`: powers by repeated products (exact `x**0 == 1`, no pow() calls), gathered."""
+    exponents = np.asarray(exponents, dtype=int)
+    powers = [jnp.ones_like(x), x]
+    for _ in range(int(exponents.max(initial=1)) - 1):
+        powers.append(powers[-1] * x)
+    powers = jnp.stack(powers, axis=-1)  # (..., m, P + 1)
+    m = x.shape[-1]
+    return jnp.prod(powers[..., np.arange(m)[None, :], exponents], axis=-1)
+
+
 def _eval_block(family, idx, x, u, smoothing=None):
     """Columns of one family; `idx` as in `Library.blocks`, shape `(k, m)` or `(k, 1|2)`.
     `smoothing (m,)` variances replace the non-smooth families by their Gaussian averages."""
@@ -176,15 +188,7 @@ def _eval_block(family, idx, x, u, smoothing=None):
         # x_i |x_j| with i != j: independent increments (smoothing acts on velocities only).
         return jnp.where(same, _smoothed_xabs(x[..., j], c), x[..., i] * _smoothed_abs(x[..., j], c))
     if family == "poly":
-        degree = int(idx.sum(axis=1).max())
-        # Powers x**0..x**P by repeated products: exact x**0 == 1 and no pow() calls.
-        powers = [jnp.ones_like(x), x]
-        for _ in range(degree - 1):
-            powers.append(powers[-1] * x)
-        powers = jnp.stack(powers[: degree + 1], axis=-1)  # (..., m, P+1)
-        m = x.shape[-1]
-        gathered = powers[..., np.arange(m)[None, :], idx]  # (..., k, m)
-        return jnp.prod(gathered, axis=-1)
+        return monomials(x, idx)
     i = idx[:, 0]
     if family == "sign":
         return jnp.sign(x[..., i])
