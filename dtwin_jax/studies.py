@@ -167,10 +167,11 @@ def _ensembles(example, sim_keys, records: int):
     return jax.vmap(lambda k: systems.simulate_example_sde(example, k, num_records=records)["x"])(sim_keys)
 
 
-def _drift_stats(example, lib, level, x, key):
+def _drift_stats(example, lib, level, x, key, settings):
     nominal = example.system.nominal
     y = measurement.add_noise(key, x, level)
-    return output_only_drift_stats(nominal, lib, y, example.dt, kramers_moyal.noise_variance(y), jax.random.fold_in(key, 1))[0]
+    return output_only_drift_stats(nominal, lib, y, example.dt, kramers_moyal.noise_variance(y),
+                                   jax.random.fold_in(key, 1), settings)[0]
 
 
 @eqx.filter_jit
@@ -185,7 +186,7 @@ def _oo_drift_program(example, lib, levels, keys, truth, support, records, setti
     lv = jnp.repeat(levels, Rp)
     rep = jnp.tile(jnp.arange(Rp), L)
     stats = jax.lax.map(
-        lambda a: _drift_stats(example, lib, a[0], x[a[1]], noise_keys[a[1]]),
+        lambda a: _drift_stats(example, lib, a[0], x[a[1]], noise_keys[a[1]], settings),
         (lv, rep), batch_size=batch_size,
     )
     stats = jax.tree.map(lambda a: a.reshape((L, Rp) + a.shape[1:]), stats)

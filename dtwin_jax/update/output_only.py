@@ -22,7 +22,14 @@ from dtwin_jax.progress import Stages
 from dtwin_jax.sampler import SuffStats
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.update.lifecycle import check_previous, updated_history, with_previous
-from dtwin_jax.update.output_only_stats import brownian_variance, diffusion_statistics, output_only_drift_stats
+from dtwin_jax.update.output_only_stats import (
+    brownian_variance,
+    diffusion_statistics,
+    drift_pass,
+    first_pass_estimate,
+    first_pass_rows,
+    first_pass_settings,
+)
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 from dtwin_jax.update.sampling import _sample_equations, numpy_stats, posteriors
 
@@ -73,12 +80,20 @@ def update_output_only(
     with stages("drift statistics (Kramers-Moyal)"):
         noise_var = kramers_moyal.noise_variance(rec.x)
         check_columns(np.asarray(lib(rec.x.reshape(-1, m)[:: max(1, R * N // 20000)])), lib.names)
-        # A new process (the command line) reuses the traced program: see dtwin_jax.aot.
-        drift_stats, margin = aot.call(
-            "output_only_drift_stats", lambda n, xx, nv, k: output_only_drift_stats(n, lib, xx, dt, nv, k),
-            (nominal, rec.x, noise_var, jax.random.key(seed)), static=(lib, float(dt)),
-            unflatten=lambda leaves: (SuffStats(*leaves[:4]), leaves[4]),
-        )
+        # output_only_drift_stats in separate programs, with the same draws: both passes run
+        # one program, and the first pass's short run the drift sampling's (compiled once).
+        def drift_pass_stats(coef, smoothing, rows):
+            return aot.call(  # a new process (the command line) reuses the traced program
+                "drift_pass", lambda n, xx, nv, c, s, r: drift_pass(n, lib, xx, dt, nv, c, s, r),
+                (nominal, rec.x, noise_var, coef, smoothing, jnp.asarray(rows)), static=(lib, float(dt)),
+                unflatten=lambda leaves: (SuffStats(*leaves[:4]), leaves[4]),
+            )
+
+        first, _ = drift_pass_stats(jnp.zeros((len(nominal.regressed_index), lib.K)), jnp.zeros(m),
+                                    first_pass_rows(rec.x))
+        first_key = jax.random.split(jax.random.key(seed))[0]
+        trace = _sample_equations(first, first_pass_settings(settings), seed, False, key=first_key)
+        drift_stats, margin = drift_pass_stats(*first_pass_estimate(nominal, dt, noise_var, trace), R * (N - 2))
         drift_stats = jax.block_until_ready(with_previous(drift_stats, "drift", previous, forget))
     names = nominal.state_names
     regressed = [names[i] for i in nominal.regressed_index]

@@ -11,6 +11,7 @@ Diffusion, given that drift: the Kalman likelihood's maximum and its EM targets
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import NamedTuple
 
@@ -22,6 +23,7 @@ from dtwin_jax import aot, kramers_moyal, sampler, statespace
 from dtwin_jax.library import Library
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.targets import equation_stats
+from dtwin_jax.update.result import SamplerSettings
 
 __all__ = [
     "FIRST_PASS_ROWS",
@@ -29,62 +31,97 @@ __all__ = [
     "brownian_variance",
     "correction_margin",
     "diffusion_statistics",
+    "drift_pass",
+    "first_pass_estimate",
+    "first_pass_rows",
+    "first_pass_settings",
     "output_only_drift_stats",
 ]
 
 
-_FIRST_PASS = dict(num_chains=1, num_draws=300, num_burnin=300)
 FIRST_PASS_ROWS = 20000
 
 
+def first_pass_settings(settings: SamplerSettings) -> SamplerSettings:
+    """The first pass's short run: ``settings``' chains, one chunk of burn-in and one of
+    draws (:data:`sampler.CHUNK` sweeps each), so that it runs the main run's compiled
+    chunk program (:func:`sampler.sample_in_chunks`)."""
+    return dataclasses.replace(settings, num_draws=sampler.CHUNK, num_burnin=sampler.CHUNK)
+
+
+def first_pass_rows(x) -> int:
+    """Samples of records ``x (R, N, m)`` the first pass uses: whole records up to
+    :data:`FIRST_PASS_ROWS` samples."""
+    R, N, _ = x.shape
+    return max(1, FIRST_PASS_ROWS // N) * (N - 2) if R > 1 else FIRST_PASS_ROWS
+
+
 @functools.partial(jax.jit, static_argnums=(1,))
-def output_only_drift_stats(nominal: LinearSecondOrder, lib: Library, x, dt, noise_var, key) -> tuple:
+def drift_pass(nominal: LinearSecondOrder, lib: Library, x, dt, noise_var, coef, smoothing, rows) -> tuple:
+    """One pass of :func:`output_only_drift_stats`: the Kramers-Moyal statistics of the first
+    ``rows`` samples with the regressors moved along the nominal model plus ``coef (q, K)``
+    (the library smoothed by ``smoothing (m,)``). Returns ``(stats, margin (q,))``, the
+    Gram matrices' eigenvalues floored (:func:`_nearest_pd`)."""
+    regressed = jnp.asarray(nominal.regressed_index)
+
+    def perturbation(z):
+        return jnp.zeros(z.shape[-1], z.dtype).at[regressed].set(coef @ lib.eval_single(z, None, smoothing))
+
+    st = kramers_moyal.drift_statistics(nominal, lib, x, dt, noise_var, perturbation, smoothing=smoothing, rows=rows)
+    return st._replace(gram=_nearest_pd(st.gram)), correction_margin(st.gram)
+
+
+@eqx.filter_jit
+def first_pass_estimate(nominal: LinearSecondOrder, dt, noise_var, trace: sampler.GibbsTrace) -> tuple:
+    """The drift of the first pass's draws ``(q, chains, draws, ...)``: ``coef (q, K)``, the
+    means of the terms with PIP > 0.5 (others 0), and the library's ``smoothing (m,)``."""
+    vel = jnp.asarray(nominal.velocity_index)
+    gamma_draws, theta = jnp.asarray(trace.gamma), jnp.asarray(trace.theta)
+    included = gamma_draws.sum(axis=(1, 2))  # (q, K)
+    chosen = included > 0.5 * gamma_draws.shape[1] * gamma_draws.shape[2]
+    coef = jnp.where(chosen, theta.sum(axis=(1, 2)) / jnp.maximum(included, 1), 0.0)
+    gamma = brownian_variance(nominal, dt, noise_var, jnp.asarray(trace.sigma2).mean(axis=(1, 2)))
+    # Gamma 1.5 dt: the step k+1 -> k+2 seen from sample k; the noise's own smoothing is s^2.
+    c = jnp.maximum(1.5 * dt * gamma - jnp.asarray(noise_var)[vel], 0.0)
+    return coef, jnp.zeros(nominal.m).at[vel].set(c)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 6))
+def output_only_drift_stats(nominal: LinearSecondOrder, lib: Library, x, dt, noise_var, key,
+                            settings: SamplerSettings = SamplerSettings()) -> tuple:
     """Kramers-Moyal drift statistics of records ``x (R, N, m)`` (batched over the regressed
     states), with the regressors moved along the model's drift (two passes).
 
     The first pass moves them along the nominal model only, on the first ~20000 samples
-    (:data:`FIRST_PASS_ROWS`); a short sampler run gives the
+    (:func:`first_pass_rows`); a short sampler run (:func:`first_pass_settings`) gives the
     selected terms (PIP > 0.5) and their means, and the second pass moves the regressors
     along the nominal model plus that estimate (its error enters only the O(dt) shift). A
     greedy first estimate is not enough: on example 2's 256 terms it adds fifth-degree terms
     whose rough flow spoils the shift. The second pass uses all samples. Both passes are one
     compiled loop body (statistics, then the short run; the second pass's run goes unused).
-    Pure and jittable (``dt`` static through the shapes; ``key`` for the short runs).
+    Pure and jittable (``dt`` static through the shapes; ``key`` for the short runs, pass
+    ``k`` from ``jax.random.split(key, 2)``, equation ``j`` from ``split(k, q)``).
+    :func:`update_output_only` runs the same steps as separate programs, with the same draws.
     Returns ``(stats, margin (q,))``, ``margin`` the :func:`correction_margin` of the
     corrected Gram matrices before their eigenvalues are floored.
     """
-    regressed = jnp.asarray(nominal.regressed_index)
-    vel = jnp.asarray(nominal.velocity_index)
-    q = regressed.size
-
+    q = len(nominal.regressed_index)
     R, N, _ = x.shape
-    leading = max(1, FIRST_PASS_ROWS // N) * (N - 2) if R > 1 else FIRST_PASS_ROWS  # whole records
+    kwargs = dict(num_chains=settings.num_chains, num_draws=sampler.CHUNK, num_burnin=sampler.CHUNK,
+                  prior=settings.prior, p0=settings.p0, v_s=settings.v_s, max_active=settings.max_active)
 
     def one_pass(carry, inputs):
         key, rows = inputs
         coef, smoothing, _, _ = carry
-
-        def perturbation(z):
-            return jnp.zeros(z.shape[-1], z.dtype).at[regressed].set(coef @ lib.eval_single(z, None, smoothing))
-
-        st = kramers_moyal.drift_statistics(
-            nominal, lib, x, dt, noise_var, perturbation, smoothing=smoothing, rows=rows
-        )
-        margin = correction_margin(st.gram)
-        st = st._replace(gram=_nearest_pd(st.gram))
-        trace = jax.vmap(lambda k, s: sampler.sample(k, s, **_FIRST_PASS))(jax.random.split(key, q), st)
-        included = trace.gamma.sum(axis=(1, 2))  # (q, K)
-        chosen = included > 0.5 * trace.gamma.shape[1] * trace.gamma.shape[2]
-        coef = jnp.where(chosen, trace.theta.sum(axis=(1, 2)) / jnp.maximum(included, 1), 0.0)
-        gamma = brownian_variance(nominal, dt, noise_var, trace.sigma2.mean(axis=(1, 2)))
-        # Gamma 1.5 dt: the step k+1 -> k+2 seen from sample k; the noise's own smoothing is s^2.
-        c = jnp.maximum(1.5 * dt * gamma - jnp.asarray(noise_var)[vel], 0.0)
-        return (coef, jnp.zeros(nominal.m).at[vel].set(c), st, margin), None
+        st, margin = drift_pass(nominal, lib, x, dt, noise_var, coef, smoothing, rows)
+        trace = jax.vmap(lambda k, s: sampler.sample(k, s, **kwargs))(jax.random.split(key, q), st)
+        coef, smoothing = first_pass_estimate(nominal, dt, noise_var, trace)
+        return (coef, smoothing, st, margin), None
 
     K = lib.K
     blank = sampler.SuffStats(jnp.zeros((q, K, K)), jnp.zeros((q, K)), jnp.zeros(q), jnp.zeros(q))
     carry = (jnp.zeros((q, K)), jnp.zeros(nominal.m), blank, jnp.zeros(q))
-    passes = (jax.random.split(key, 2), jnp.asarray([leading, R * (N - 2)]))
+    passes = (jax.random.split(key, 2), jnp.asarray([first_pass_rows(x), R * (N - 2)]))
     (_, _, st, margin), _ = jax.lax.scan(one_pass, carry, passes)
     return st, margin
 

@@ -1,11 +1,9 @@
 """The step both frameworks share once their statistics are built: the library resolved from
-its spec, one spike-and-slab sampler call over the batched sufficient statistics of every
-regressed equation (:mod:`dtwin_jax.sampler`), and the draws turned into one
+its spec, the spike-and-slab sampler run on the sufficient statistics of every regressed
+equation (:func:`dtwin_jax.sampler.sample_in_chunks`), and the draws turned into one
 :class:`EquationPosterior` per equation."""
 
 from __future__ import annotations
-
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -14,7 +12,7 @@ import numpy as np
 from dtwin_jax import aot, sampler
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, parse_library
 from dtwin_jax.posterior import EquationPosterior
-from dtwin_jax.progress import Bar
+from dtwin_jax.progress import Bar, tick
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.update.result import SamplerSettings
 
@@ -43,23 +41,27 @@ def numpy_stats(stats: sampler.SuffStats) -> sampler.SuffStats:
     return sampler.SuffStats(*(np.asarray(a) for a in stats))
 
 
-def _sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed: int, progress: bool):
-    """One sampler call over the batched statistics of every equation; ``progress``: a bar of
-    the sweeps, advanced from inside the compiled program (the draws are the same)."""
+def _sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed: int, progress: bool,
+                      key: jax.Array | None = None) -> sampler.GibbsTrace:
+    """Draws ``(q, chains, draws, ...)`` (host arrays) for the batched statistics of every
+    equation, each by :func:`sampler.sample_in_chunks` with its own key from ``seed`` (or
+    ``key``). Its programs depend on K and the chains only, so updates of other lengths, the
+    output-only first pass and new processes (:mod:`dtwin_jax.aot`) reuse them.
+    ``progress``: a bar of the sweeps, advanced after each chunk."""
     # Strongly typed float64: a weakly typed count (from a Python scalar) and a re-update's
     # summed one would otherwise be two jit signatures, and the sampler would compile twice.
     stats = sampler.SuffStats(*(jnp.asarray(a, dtype=jnp.float64) for a in stats))
     q = stats.xty.shape[0]
-    keys = jax.random.split(jax.random.key(seed), q)
-    method = sampler.default_batch_method()
+    keys = jax.random.split(jax.random.key(seed) if key is None else key, q)
     total = settings.num_burnin + settings.num_draws
-    ticks = max(1, total // 100) if progress else 0
-    if progress:  # host callbacks: not serializable, so traced in every process
-        with Bar(True, q * settings.num_chains * (total // ticks) * ticks, "Gibbs sweeps"):
-            return jax.block_until_ready(_sample_batch(keys, stats, settings, method, ticks))
-    # A new process (the command line) reuses the traced program: see dtwin_jax.aot.
-    return aot.call("sampler", lambda k, st: _sample_batch(k, st, settings, method), (keys, stats),
-                    static=(settings, method), unflatten=lambda leaves: sampler.GibbsTrace(*leaves))
+    sweeps = q * settings.num_chains * -(-total // sampler.CHUNK) * sampler.CHUNK
+    with Bar(progress, sweeps, "Gibbs sweeps"):
+        traces = [
+            sampler.sample_in_chunks(keys[j], jax.tree.map(lambda a: a[j], stats), **_sampler_kwargs(settings),
+                                     on_chunk=tick if progress else None, call=aot.call)
+            for j in range(q)
+        ]
+    return sampler.GibbsTrace(*(np.stack(parts) for parts in zip(*traces)))
 
 
 def _sampler_kwargs(settings: SamplerSettings) -> dict:
@@ -73,12 +75,3 @@ def _sampler_kwargs(settings: SamplerSettings) -> dict:
         p0=settings.p0,
         v_s=settings.v_s,
     )
-
-
-@functools.partial(jax.jit, static_argnums=(2, 3, 4))
-def _sample_batch(keys, stats, settings: SamplerSettings, method: str, ticks: int = 0):
-    # One compiled program per settings and shapes: an eager lax.map over a fresh lambda
-    # would compile again on every update.
-    kwargs = _sampler_kwargs(settings)
-    return sampler.batch_map(lambda k, s: sampler.sample(k, s, chain_method=method, ticks=ticks, **kwargs),
-                             method, keys, stats)
