@@ -407,7 +407,6 @@ def sample(
     max_active: int | None = None,
     chain_method: str | None = None,
     progress: bool = False,
-    ticks: int = 0,
     init_strategy: str = "dispersed",
 ) -> GibbsTrace:
     """Standardise, run ``num_chains`` chains (vmapped) and return draws in physical units.
@@ -424,23 +423,22 @@ def sample(
     the default picks vectorized on accelerators and sequential on CPU, where XLA runs the
     vmapped indicator loop 2-4x slower per chain (measured in benchmarks/sampler_speed.py).
     Jittable and vmappable (over ``key`` and ``stats``) when ``progress`` is False.
-    ``progress``: show a progress bar of the sweeps (runs the compiled chains with ``ticks``
-    of 1% of the sweeps). ``ticks > 0`` (static): every ``ticks`` sweeps each chain calls
-    :func:`dtwin_jax.progress.tick` from inside the compiled loop, which advances a bar the
-    caller opened (:class:`dtwin_jax.progress.Bar`). The draws are identical either way.
+    ``progress``: show a progress bar of the sweeps (runs :func:`sample_in_chunks`, whose
+    draws are the same).
     """
+    if progress:
+        from dtwin_jax.progress import Bar, tick
+
+        total = num_burnin + num_draws
+        with Bar(True, num_chains * -(-total // CHUNK) * CHUNK, "Gibbs sweeps"):
+            trace = sample_in_chunks(key, stats, num_draws=num_draws, num_burnin=num_burnin, num_chains=num_chains,
+                                     prior=prior, p0=p0, v_s=v_s, max_active=max_active, chain_method=chain_method,
+                                     init_strategy=init_strategy, on_chunk=tick)
+        return jax.tree.map(jnp.asarray, trace)
     scaled, col, ys = standardize(stats)
     total = num_burnin + num_draws
     keys, states = _setup(key, scaled, prior, p0, v_s, max_active, num_chains, total, init_strategy)
-    method = chain_method or default_batch_method()
-    if progress:
-        from dtwin_jax.progress import Bar
-
-        ticks = max(1, total // 100)
-        with Bar(True, num_chains * (total // ticks) * ticks, "Gibbs sweeps"):
-            _, trace = jax.block_until_ready(_run_chains_jit(keys, states, scaled, prior, max_active, method, ticks))
-    else:
-        _, trace = _run_chains(keys, states, scaled, prior, max_active, method, ticks)
+    _, trace = _run_chains(keys, states, scaled, prior, max_active, chain_method or default_batch_method())
     trace = jax.tree.map(lambda a: a[:, num_burnin:], trace)
     factor = ys / col
     return trace._replace(theta=trace.theta * factor, sigma2=trace.sigma2 * ys**2)
@@ -495,7 +493,7 @@ def sample_in_chunks(
     parts = []
     for i in range(num_chunks):
         states, trace = call(
-            "sampler_chunk", lambda k, s, st: _run_chains_jit(k, s, st, prior, max_active, method, 0),
+            "sampler_chunk", lambda k, s, st: _run_chains_jit(k, s, st, prior, max_active, method),
             (keys[:, i * chunk : (i + 1) * chunk], states, scaled), static=(prior, max_active, method),
             unflatten=lambda leaves: (GibbsState(*leaves[:5]), GibbsTrace(*leaves[5:])),
         )
@@ -603,25 +601,14 @@ def _setup(key, scaled, prior, p0, v_s, max_active, num_chains, total, init_stra
     return keys, states
 
 
-def _run_keys(keys, state, stats, prior, max_active=None, ticks: int = 0):
-    """Like :func:`run_chain` but from explicit per-step keys; ``ticks > 0``: a progress tick
-    (:func:`dtwin_jax.progress.tick`) every ``ticks`` sweeps."""
+def _run_keys(keys, state, stats, prior, max_active=None):
+    """Like :func:`run_chain` but from explicit per-step keys."""
 
-    def one(carry, key):
-        state, i = carry
+    def one(state, key):
         state, info = step(key, state, stats, prior, max_active)
-        if ticks:
-            from dtwin_jax.progress import tick
+        return state, GibbsTrace(state.gamma, state.theta, state.sigma2, state.v_s, state.p0, info.log_marginal)
 
-            # A chain's own value as the argument: under vmap, one call per chain.
-            jax.lax.cond((i + 1) % ticks == 0, lambda: jax.debug.callback(lambda _: tick(ticks), state.sigma2),
-                         lambda: None)
-        return (state, i + 1), GibbsTrace(
-            state.gamma, state.theta, state.sigma2, state.v_s, state.p0, info.log_marginal
-        )
-
-    (state, _), trace = jax.lax.scan(one, (state, jnp.zeros((), jnp.int32)), keys)
-    return state, trace
+    return jax.lax.scan(one, state, keys)
 
 
 def default_batch_method() -> str:
@@ -638,18 +625,17 @@ def batch_map(fn, method: str, *args):
     raise ValueError(f"unknown batch method {method!r} (vectorized or sequential)")
 
 
-def _run_chains(keys, states, stats, prior, max_active, method, ticks=0):
-    return batch_map(lambda k, s: _run_keys(k, s, stats, prior, max_active, ticks), method, keys, states)
+def _run_chains(keys, states, stats, prior, max_active, method):
+    return batch_map(lambda k, s: _run_keys(k, s, stats, prior, max_active), method, keys, states)
 
 
-_run_chains_jit = jax.jit(_run_chains, static_argnums=(3, 4, 5, 6))
+_run_chains_jit = jax.jit(_run_chains, static_argnums=(3, 4, 5))
 
 
 sample_jit = jax.jit(
     sample,
     static_argnames=(
-        "num_draws", "num_burnin", "num_chains", "prior", "max_active", "chain_method", "progress", "ticks",
-        "init_strategy",
+        "num_draws", "num_burnin", "num_chains", "prior", "max_active", "chain_method", "progress", "init_strategy",
     ),
 )
 sample_jit.__doc__ = "``jax.jit`` of :func:`sample` (``progress`` must be False)."

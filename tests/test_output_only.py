@@ -163,6 +163,24 @@ def test_cli_discovers_drift_and_diffusion_from_a_file_without_u(tmp_path):
     assert abs(diffusion["terms"][0]["mean"] / 0.25 - 1) < 0.2
 
 
+def test_update_runs_the_two_drift_passes_as_output_only_drift_stats_does():
+    """update_output_only's drift statistics run as separate programs (the first pass's short
+    run is the drift sampling's program): the same as the one pure function the sweeps run,
+    on 30 records of which the first pass uses 19."""
+    from dtwin_jax.update.output_only import drift_statistics
+    from dtwin_jax.update.output_only_stats import first_pass_rows, output_only_drift_stats
+
+    ex, t, x = _ensemble("example1", records=30)
+    nominal, lib, x = ex.system.nominal, parse_library("poly:2", 2, 0), jnp.asarray(x)
+    assert first_pass_rows(x) < 30 * (x.shape[1] - 2)
+    args = (nominal, lib, x, ex.dt, kramers_moyal.noise_variance(x))
+    split, split_margin = drift_statistics(*args, FAST, 3)
+    st, margin = output_only_drift_stats(*args, jax.random.key(3), FAST)
+    for a, b in zip(split, st):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(split_margin), np.asarray(margin), rtol=1e-9, atol=1e-12)
+
+
 def test_noise_correction_margin_flags_noise_beyond_the_library():
     """Example 1, 100 records: the corrected Gram stays (nearly) definite at 5% noise and
     loses definiteness at 35% (where the sweep selects 15-28 spurious terms)."""

@@ -80,20 +80,7 @@ def update_output_only(
     with stages("drift statistics (Kramers-Moyal)"):
         noise_var = kramers_moyal.noise_variance(rec.x)
         check_columns(np.asarray(lib(rec.x.reshape(-1, m)[:: max(1, R * N // 20000)])), lib.names)
-        # output_only_drift_stats in separate programs, with the same draws: both passes run
-        # one program, and the first pass's short run the drift sampling's (compiled once).
-        def drift_pass_stats(coef, smoothing, rows):
-            return aot.call(  # a new process (the command line) reuses the traced program
-                "drift_pass", lambda n, xx, nv, c, s, r: drift_pass(n, lib, xx, dt, nv, c, s, r),
-                (nominal, rec.x, noise_var, coef, smoothing, jnp.asarray(rows)), static=(lib, float(dt)),
-                unflatten=lambda leaves: (SuffStats(*leaves[:4]), leaves[4]),
-            )
-
-        first, _ = drift_pass_stats(jnp.zeros((len(nominal.regressed_index), lib.K)), jnp.zeros(m),
-                                    first_pass_rows(rec.x))
-        first_key = jax.random.split(jax.random.key(seed))[0]
-        trace = _sample_equations(first, first_pass_settings(settings), seed, False, key=first_key)
-        drift_stats, margin = drift_pass_stats(*first_pass_estimate(nominal, dt, noise_var, trace), R * (N - 2))
+        drift_stats, margin = drift_statistics(nominal, lib, rec.x, dt, noise_var, settings, seed)
         drift_stats = jax.block_until_ready(with_previous(drift_stats, "drift", previous, forget))
     names = nominal.state_names
     regressed = [names[i] for i in nominal.regressed_index]
@@ -155,6 +142,27 @@ def update_output_only(
         statistics={"drift": numpy_stats(drift_stats), "diffusion": numpy_stats(stats)},
         history=updated_history(previous, "output-only", rec, forget, drift + diffusion, time.perf_counter() - start),
     )
+
+
+def drift_statistics(nominal: LinearSecondOrder, lib: Library, x, dt: float, noise_var, settings: SamplerSettings,
+                     seed: int) -> tuple[SuffStats, jax.Array]:
+    """:func:`output_only_drift_stats` of records ``x (R, N, m)`` with ``key(seed)``, run as
+    separate programs with the same result: both passes are one program, and the first
+    pass's short run is the drift sampling's program (:func:`_sample_equations`), compiled
+    once. Returns ``(stats, margin (q,))``."""
+    R, N, m = x.shape
+
+    def one_pass(coef, smoothing, rows):
+        return aot.call(  # a new process (the command line) reuses the traced program
+            "drift_pass", lambda n, xx, nv, c, s, r: drift_pass(n, lib, xx, dt, nv, c, s, r),
+            (nominal, x, noise_var, coef, smoothing, jnp.asarray(rows)), static=(lib, float(dt)),
+            unflatten=lambda leaves: (SuffStats(*leaves[:4]), leaves[4]),
+        )
+
+    first, _ = one_pass(jnp.zeros((len(nominal.regressed_index), lib.K)), jnp.zeros(m), first_pass_rows(x))
+    first_key = jax.random.split(jax.random.key(seed))[0]
+    trace = _sample_equations(first, first_pass_settings(settings), seed, False, key=first_key)
+    return one_pass(*first_pass_estimate(nominal, dt, noise_var, trace), R * (N - 2))
 
 
 def output_only_library(library, nominal: LinearSecondOrder, default: str) -> Library:
