@@ -31,6 +31,7 @@ from dtwin_jax.measurement import (
     smooth,
     smoothing_half_width,
 )
+from dtwin_jax.linalg import mass_solve
 from dtwin_jax.systems import LinearSecondOrder
 
 __all__ = ["savgol_design_ok", "auto_half_width", "noise_std", "savgol_states", "kinematic_smoother", "input_noise_variance"]
@@ -140,7 +141,7 @@ def _kinematic_smoother(nominal: LinearSecondOrder, dt: float, x, xdot, u, half_
     d, E = nominal.d, nominal.extra_states
     jump = jnp.zeros_like(xdot)
     if u is not None:
-        force = jnp.linalg.solve(nominal.M, nominal.B @ jnp.asarray(u).T).T  # (N, d)
+        force = mass_solve(nominal.M, nominal.B @ jnp.asarray(u).T).T  # (N, d)
         jump = jump.at[:, d : 2 * d].set(force)
     # a(t) on [t_k, t_k+1) = held part + smooth part s(t); s is integrated by trapezoid.
     held = jump[:-1]
@@ -196,7 +197,7 @@ def input_noise_variance(nominal: LinearSecondOrder, xs, u, rates, half_width: i
     xs, u, rates = (jnp.asarray(a) for a in (xs, u, rates))
     d = nominal.d
     vel = jnp.asarray(nominal.velocity_index)
-    gain = jnp.linalg.solve(nominal.M, nominal.B)  # (d, n)
+    gain = mass_solve(nominal.M, nominal.B)  # (d, n)
     zero = jnp.zeros(u.shape[-1], u.dtype)
     f0 = jax.vmap(lambda x: nominal.rate_batch(x, jnp.broadcast_to(zero, (x.shape[0], zero.size))))(xs)
     r = rates[..., vel] - f0[..., vel]

@@ -27,10 +27,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import expm
 
 from dtwin_jax.errors import DataError
 from dtwin_jax.kalman import kalman_filter, newton_log_variances, rts_smoother
+from dtwin_jax.linalg import expm, mass_solve
 from dtwin_jax.systems import UPSAMPLE, LinearSecondOrder, check_interpolation, upsample
 
 __all__ = ["measured_index", "discretize", "state_smoother", "identify_linear"]
@@ -57,7 +57,7 @@ def _continuous(nominal: LinearSecondOrder):
     d, m, n = nominal.d, nominal.m, nominal.n
     reg = np.asarray(nominal.regressed_index)
     S = m + reg.size
-    Minv = jnp.linalg.inv(nominal.M)
+    Minv = mass_solve(nominal.M, jnp.eye(d))
     A = jnp.zeros((S, S)).at[:d, d : 2 * d].set(jnp.eye(d))
     A = A.at[d : 2 * d, :d].set(-Minv @ nominal.K).at[d : 2 * d, d : 2 * d].set(-Minv @ nominal.C)
     A = A.at[reg, m + np.arange(reg.size)].set(1.0)

@@ -39,10 +39,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import expm
 
 from dtwin_jax import sampler
 from dtwin_jax.library import Library, monomials
+from dtwin_jax.linalg import expm, mass_solve
 from dtwin_jax.systems import LinearSecondOrder
 
 __all__ = [
@@ -61,7 +61,7 @@ __all__ = [
 def state_matrix(nominal: LinearSecondOrder) -> jax.Array:
     """`A (m, m)` of the nominal model, `dX/dt = A X + B_x u`."""
     d, m = nominal.d, nominal.m
-    gain = jnp.linalg.solve(nominal.M, jnp.concatenate([nominal.K, nominal.C], axis=1))
+    gain = mass_solve(nominal.M, jnp.concatenate([nominal.K, nominal.C], axis=1))
     A = jnp.zeros((m, m), gain.dtype)
     return A.at[:d, d : 2 * d].set(jnp.eye(d)).at[d : 2 * d, : 2 * d].set(-gain)
 

@@ -16,6 +16,7 @@ import numpy as np
 from jaxtyping import Array, Float, PyTree
 
 from dtwin_jax.errors import DataError
+from dtwin_jax.linalg import mass_solve
 
 __all__ = [
     "LinearSecondOrder",
@@ -126,7 +127,7 @@ class LinearSecondOrder(eqx.Module):
         """Nominal state rate `(m,)` for one state `x (m,)` and input `u (n,)`."""
         d = self.d
         q, v = x[:d], x[d : 2 * d]
-        a = jnp.linalg.solve(self.M, self.B @ u + self.F0 - self.C @ v - self.K @ q)
+        a = mass_solve(self.M, self.B @ u + self.F0 - self.C @ v - self.K @ q)
         return jnp.concatenate([v, a, jnp.zeros(self.extra_states, dtype=x.dtype)])
 
     def rate_batch(self, x: Float[Array, "N m"], u: Float[Array, "N n"]) -> Float[Array, "N m"]:
@@ -276,7 +277,7 @@ def diffusion_matrix(nominal: LinearSecondOrder) -> Float[Array, "m n"]:
     """`G (m, n)` of `dX = (f + h) dt + G dB`: the force `B dB` enters the velocity rows as
     `M^-1 B dB`; the kinematic and extra rows get no noise."""
     d = nominal.d
-    gain = jnp.linalg.solve(nominal.M, nominal.B)
+    gain = mass_solve(nominal.M, nominal.B)
     return jnp.zeros((nominal.m, nominal.n), gain.dtype).at[d : 2 * d].set(gain)
 
 

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 from dtwin_jax import sampler
 from dtwin_jax.denoise import input_noise_variance, kinematic_smoother
 from dtwin_jax.library import Library
+from dtwin_jax.linalg import mass_solve
 from dtwin_jax.systems import LinearSecondOrder
 
 __all__ = [
@@ -57,7 +58,7 @@ def correct_input_noise(stats: sampler.SuffStats, lib: Library, nominal: LinearS
     the opposite sign (adding ``-N (M^-1 B)_ij var_j`` to ``L^T y``). Unremoved, it shows up as
     a spurious ``u_j`` term at high noise. ``noise_var (n,)`` may be traced.
     """
-    gain = jnp.linalg.solve(nominal.M, nominal.B)  # (d, n)
+    gain = mass_solve(nominal.M, nominal.B)  # (d, n)
     noise_var = jnp.asarray(noise_var)
     gram, xty = jnp.asarray(stats.gram), jnp.asarray(stats.xty)
     n_rows = jnp.asarray(stats.n)[..., 0]
