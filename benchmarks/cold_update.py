@@ -1,0 +1,54 @@
+"""Where a cold output-only update's time goes: one example simulated (100 records x 1 s, 5%
+noise), then updated twice in this process; prints the stages of each call and the XLA
+compilation time of every compiled program (from JAX's compile log).
+
+    taskset -c 0 python benchmarks/cold_update.py [example1|example2|example3]
+
+Run it in a fresh process with no persistent compilation cache (the default here: the
+library sets none), pinned to one core.
+"""
+
+import io
+import logging
+import re
+import sys
+import time
+
+import jax
+import numpy as np
+
+from dtwin_jax import SamplerSettings, systems, update_output_only
+from dtwin_jax.measurement import add_noise
+
+
+def main(name: str = "example1") -> None:
+    jax.config.update("jax_log_compiles", True)
+    log = io.StringIO()
+    handler = logging.StreamHandler(log)
+    logger = logging.getLogger("jax")
+    logger.addHandler(handler)
+    logger.setLevel(logging.DEBUG)
+    logger.propagate = False
+
+    settings = SamplerSettings(num_chains=2, num_draws=600, num_burnin=300)  # tests/test_output_only.py's
+    ex = systems.EXAMPLES[name]().for_output_only()
+    start = time.perf_counter()
+    sim = systems.simulate_example_sde(ex, jax.random.key(0), num_records=100)
+    x = np.asarray(add_noise(jax.random.key(1), sim["x"], 0.05))
+    print(f"{name}: simulation, first call {time.perf_counter() - start:.2f} s")
+    for call in ("first", "second"):
+        start = time.perf_counter()
+        result = update_output_only(ex.system.nominal, sim["t"], x, library=ex.library_output_only, settings=settings)
+        print(f"update, {call} call {time.perf_counter() - start:.2f} s: {result.preprocessing['stage_seconds']}")
+    compiled: dict[str, float] = {}
+    for line in log.getvalue().splitlines():
+        found = re.search(r"Finished XLA compilation of (.*) in ([0-9.e-]+) sec", line)
+        if found:
+            compiled[found.group(1)] = compiled.get(found.group(1), 0.0) + float(found.group(2))
+    print(f"XLA compilation {sum(compiled.values()):.1f} s in all; the largest:")
+    for fn, seconds in sorted(compiled.items(), key=lambda kv: -kv[1])[:12]:
+        print(f"  {seconds:6.2f} s  {fn}")
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:])
