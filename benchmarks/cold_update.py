@@ -5,7 +5,9 @@ compilation time of every compiled program (from JAX's compile log).
     taskset -c 0 python benchmarks/cold_update.py [example1|example2|example3]
 
 Run it in a fresh process with no persistent compilation cache (the default here: the
-library sets none), pinned to one core.
+library sets none), pinned to one core. Last, the compilation time of one call site of
+``jax.scipy.linalg.expm`` against ``dtwin_jax.linalg.expm`` (12 x 12) and of
+``jnp.linalg.solve`` against ``dtwin_jax.linalg.mass_solve`` (1 x 1), each a fresh program.
 """
 
 import io
@@ -48,6 +50,27 @@ def main(name: str = "example1") -> None:
     print(f"XLA compilation {sum(compiled.values()):.1f} s in all; the largest:")
     for fn, seconds in sorted(compiled.items(), key=lambda kv: -kv[1])[:12]:
         print(f"  {seconds:6.2f} s  {fn}")
+    _compile_times()
+
+
+def _compile_times() -> None:
+    import jax.numpy as jnp
+    import jax.scipy.linalg
+
+    from dtwin_jax.linalg import expm, mass_solve
+
+    A, M, b = 0.1 * jnp.eye(12) + 0.01, jnp.eye(1), jnp.ones((1, 3))
+    cases = [("jax.scipy.linalg.expm", lambda a: jax.scipy.linalg.expm(a), (A,)), ("dtwin_jax.linalg.expm", expm, (A,)),
+             ("jnp.linalg.solve, 1 x 1", lambda m, r: jnp.linalg.solve(m, r), (M, b)),
+             ("dtwin_jax.linalg.mass_solve, 1 x 1", mass_solve, (M, b))]
+    print("compilation of one call site (best of 3 fresh programs):")
+    for name, fn, args in cases:
+        best = float("inf")
+        for i in range(3):
+            start = time.perf_counter()
+            jax.jit(lambda *a, i=i: fn(*a) * (1.0 + i)).lower(*args).compile()
+            best = min(best, time.perf_counter() - start)
+        print(f"  {best:6.3f} s  {name}")
 
 
 if __name__ == "__main__":

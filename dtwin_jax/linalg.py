@@ -1,13 +1,13 @@
 """Small dense linear algebra that compiles quickly.
 
 :func:`mass_solve` is ``M^-1 rhs`` for a nominal mass matrix: a division for one degree of
-freedom (exact, and without LAPACK calls, whose expansion costs ~0.2 s of compilation per
-call site, in every simulation step and filter).
+freedom (exact, and no LAPACK call in every stage of every simulation step, filter and drift;
+benchmarks/cold_update.py times both).
 
 :func:`expm` replaces ``jax.scipy.linalg.expm`` in the package: that one evaluates the
 Padé approximants of degrees 3, 5, 7, 9 and 13 as branches of one ``lax.switch`` and undoes
-the scaling in a 16-step scan of conditionals, which costs ~0.55 s of XLA compilation per
-call site; the state-space and Kramers-Moyal programs hold several.
+the scaling in a 16-step scan of conditionals, which costs ~0.6 s of XLA compilation per
+call site (this one ~0.3 s); the state-space and Kramers-Moyal programs hold several.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ def test_expm_matches_scipy_from_tiny_to_large_norms():
             ref = scipy.linalg.expm(A)
             worst = max(worst, np.max(np.abs(np.asarray(run(A)) - ref)) / np.max(np.abs(ref)))
     print("largest relative error", worst)  # measured 1.7e-12 (at norm 300)
-    assert worst < 1e-11
+    assert worst < 5e-12
     # An oscillator over one sample (Van Loan block, as kramers_moyal.propagators builds it).
     A = np.array([[0.0, 1.0], [-1000.0, -2.0]]) * 1e-3
     assert np.max(np.abs(np.asarray(run(A)) - scipy.linalg.expm(A))) < 1e-15
