@@ -24,6 +24,7 @@ from dtwin_jax.library import Library
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.targets import equation_stats
 from dtwin_jax.update.result import SamplerSettings
+from dtwin_jax.update.sampling import _sampler_kwargs
 
 __all__ = [
     "FIRST_PASS_ROWS",
@@ -107,8 +108,7 @@ def output_only_drift_stats(nominal: LinearSecondOrder, lib: Library, x, dt, noi
     """
     q = len(nominal.regressed_index)
     R, N, _ = x.shape
-    kwargs = dict(num_chains=settings.num_chains, num_draws=sampler.CHUNK, num_burnin=sampler.CHUNK,
-                  prior=settings.prior, p0=settings.p0, v_s=settings.v_s, max_active=settings.max_active)
+    kwargs = _sampler_kwargs(first_pass_settings(settings))  # the update's first pass, as one call
 
     def one_pass(carry, inputs):
         key, rows = inputs
