@@ -63,7 +63,9 @@ def test_indicator_conditional_matches_exact_enumeration():
 
     # Run only the indicator sweeps at fixed p0, v_s (a Gibbs sampler for p(gamma | ...)).
     def sweep(gamma, key):
-        gamma = S._indicator_sweep(key, gamma, jnp.asarray(p0), jnp.asarray(v_s), stats, prior, K)
+        key_order, key_u = jax.random.split(key)
+        order, uniforms = jax.random.permutation(key_order, K), jax.random.uniform(key_u, (K,))
+        gamma = S._indicator_sweep(order, uniforms, gamma, jnp.asarray(p0), jnp.asarray(v_s), stats, prior, K)
         return gamma, gamma
 
     _, gammas = jax.jit(lambda k: jax.lax.scan(sweep, jnp.zeros(K, bool), jax.random.split(k, 20000)))(jax.random.key(3))
