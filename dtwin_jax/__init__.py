@@ -34,6 +34,7 @@ _PUBLIC = {
     "refine_output_error": "update",
     "update_input_output": "update",
     "update_output_only": "update",
+    "configure_runtime": "runtime",
 }
 _SUBMODULES = ("sampler", "systems")
 

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from dtwin_jax.errors import DataError
+from dtwin_jax.runtime import configure_runtime
 
 __all__ = ["main", "console_main", "configure_runtime"]
 
@@ -398,38 +399,6 @@ def _sweep(args) -> int:
     plot_noise_sweep(result, out / "sweep.png")
     print(f"wrote {out}/sweep.csv, {out}/sweep.json, {out}/sweep.png")
     return 0
-
-
-def configure_runtime(cores: str | None = None) -> dict:
-    """Process set-up for the command line, before any JAX computation.
-
-    * A persistent XLA compilation cache (``$DTWIN_JAX_CACHE``, default
-      ``~/.cache/dtwin-jax/jax``; ``DTWIN_JAX_CACHE=off`` disables it): a rerun reuses the
-      compiled sampler, smoothers and simulators instead of compiling them again.
-    * Threading (``cores``, else ``$DTWIN_JAX_CORES``): ``"1"`` (the default) pins the
-      process to one core, ``"all"`` leaves the affinity alone. XLA sizes its CPU thread pool
-      from the cores it may use when it starts, and its threads spin while they wait: on this
-      2-core machine one pinned process ran a sampler chain in 0.21 s against 0.39 s
-      (``benchmarks/thread_pinning.py``); on a large machine or a GPU use ``all``.
-    Returns what was set."""
-    import jax
-
-    done = {}
-    cache = os.environ.get("DTWIN_JAX_CACHE", os.path.join(Path.home(), ".cache", "dtwin-jax", "jax"))
-    if cache != "off":
-        jax.config.update("jax_compilation_cache_dir", cache)
-        # Every program: a discover compiles ~40 small ones (0.6 s together) besides the big ones.
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-        done["compilation_cache"] = cache
-    cores = cores or os.environ.get("DTWIN_JAX_CORES", "1")
-    if cores not in ("1", "all"):
-        raise DataError(f"DTWIN_JAX_CORES must be 1 or all, got {cores!r}")
-    if cores == "1" and hasattr(os, "sched_setaffinity"):
-        allowed = sorted(os.sched_getaffinity(0))
-        if len(allowed) > 1:
-            os.sched_setaffinity(0, {allowed[0]})
-        done["cores"] = [allowed[0]]
-    return done
 
 
 def console_main() -> int:

@@ -144,7 +144,8 @@ def test_demo_end_to_end(tmp_path):
 
 def test_runtime_set_up_is_the_command_line_s_only(tmp_path):
     """The `dtwin-jax` process pins itself and caches compiled programs; `main()` called from
-    Python leaves the caller's process alone; a bad DTWIN_JAX_CORES is a one-line error."""
+    Python leaves the caller's process alone (`dtwin_jax.configure_runtime()` is the opt-in);
+    a bad DTWIN_JAX_CORES is a one-line error."""
     import os
 
     before = os.sched_getaffinity(0)
@@ -153,7 +154,7 @@ def test_runtime_set_up_is_the_command_line_s_only(tmp_path):
     env = dict(os.environ, DTWIN_JAX_CORES="many")
     proc = subprocess.run([sys.executable, "-m", "dtwin_jax.cli", "--help"], capture_output=True, text=True, env=env)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "DTWIN_JAX_CORES" in proc.stderr
-    code = "from dtwin_jax.cli import configure_runtime; import os; print(configure_runtime(), len(os.sched_getaffinity(0)))"
+    code = "from dtwin_jax import configure_runtime; import os; print(configure_runtime(), len(os.sched_getaffinity(0)))"
     env = dict(os.environ, DTWIN_JAX_CACHE=str(tmp_path / "cache"), DTWIN_JAX_CORES="1")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
     assert str(tmp_path / "cache") in out and out.strip().endswith(" 1")
