@@ -636,7 +636,7 @@ def _run_keys(keys, state, stats, prior, max_active=None):
 
     The sweeps' state-free random numbers are drawn for blocks of sweeps at once (the same
     numbers as :func:`step` draws): on CPU each random call inside the loop runs threefry's
-    rounds as a small loop of its own, and drawing them vectorized made a sweep 9% (K = 36) to
+    rounds as a small loop of its own, and drawing them vectorized made a sweep 12% (K = 36) to
     33% (K = 8) faster. A block of up to 50 sweeps keeps the extra memory small when thousands
     of chains are vmapped.
     """
