@@ -518,7 +518,7 @@ def sample_in_chunks(
     parts = []
     for i in range(num_chunks):
         states, trace = call(
-            "sampler_chunk", lambda k, s, st: _run_chains_jit(k, s, st, prior, max_active, method),
+            "sampler_chunk", lambda k, s, st: _run_chains_jit(k, s, st, prior, max_active, method, False),
             (keys[:, i * chunk : (i + 1) * chunk], states, scaled), static=(prior, max_active, method),
             unflatten=lambda leaves: (GibbsState(*leaves[:5]), GibbsTrace(*leaves[5:])),
         )
@@ -631,27 +631,33 @@ def _draws_block(num_steps: int) -> int:
     return max(d for d in range(1, min(num_steps, 50) + 1) if num_steps % d == 0)
 
 
-def _run_keys(keys, state, stats, prior, max_active=None):
+def _run_keys(keys, state, stats, prior, max_active=None, draws_per_block=True):
     """Like :func:`run_chain` but from explicit per-step keys ``(num_steps,)``.
 
-    The sweeps' state-free random numbers are drawn for blocks of sweeps at once (the same
-    numbers as :func:`step` draws): on CPU each random call inside the loop runs threefry's
-    rounds as a small loop of its own, and drawing them vectorized made a sweep 12% (K = 36) to
-    33% (K = 8) faster. A block of up to 50 sweeps keeps the extra memory small when thousands
-    of chains are vmapped.
+    With ``draws_per_block`` the sweeps' state-free random numbers are drawn for blocks of
+    sweeps at once (the same numbers as :func:`step` draws): on CPU each random call inside
+    the loop runs threefry's rounds as a small loop of its own, and drawing them vectorized
+    made a sweep 12% (K = 36) to 33% (K = 8) faster, at 0.7 s more compilation per program. A
+    block of up to 50 sweeps keeps the extra memory small when thousands of chains are
+    vmapped. :func:`sample_in_chunks` draws sweep by sweep instead: its programs are compiled
+    per library size in every process and run short chunks, where compilation costs more
+    than the runtime saved.
     """
     K = stats.gram.shape[0]
     R = _max_active(K, max_active)
-    num_steps = keys.shape[0]
-    block = _draws_block(num_steps)
+    draw = lambda k: sweep_draws(k, K, R, stats.gram.dtype)  # noqa: E731
 
     def one(state, draws):
         state, info = _step_from_draws(draws, state, stats, prior, R)
         return state, GibbsTrace(state.gamma, state.theta, state.sigma2, state.v_s, state.p0, info.log_marginal)
 
+    if not draws_per_block:
+        return jax.lax.scan(lambda state, key: one(state, draw(key)), state, keys)
+    num_steps = keys.shape[0]
+    block = _draws_block(num_steps)
+
     def run_block(state, block_keys):
-        draws = jax.vmap(lambda k: sweep_draws(k, K, R, stats.gram.dtype))(block_keys)
-        return jax.lax.scan(one, state, draws)
+        return jax.lax.scan(one, state, jax.vmap(draw)(block_keys))
 
     state, trace = jax.lax.scan(run_block, state, keys.reshape(num_steps // block, block, *keys.shape[1:]))
     return state, jax.tree.map(lambda a: a.reshape(num_steps, *a.shape[2:]), trace)
@@ -671,11 +677,11 @@ def batch_map(fn, method: str, *args):
     raise ValueError(f"unknown batch method {method!r} (vectorized or sequential)")
 
 
-def _run_chains(keys, states, stats, prior, max_active, method):
-    return batch_map(lambda k, s: _run_keys(k, s, stats, prior, max_active), method, keys, states)
+def _run_chains(keys, states, stats, prior, max_active, method, draws_per_block=True):
+    return batch_map(lambda k, s: _run_keys(k, s, stats, prior, max_active, draws_per_block), method, keys, states)
 
 
-_run_chains_jit = jax.jit(_run_chains, static_argnums=(3, 4, 5))
+_run_chains_jit = jax.jit(_run_chains, static_argnums=(3, 4, 5, 6))
 
 
 sample_jit = jax.jit(
