@@ -53,8 +53,6 @@ __all__ = [
     "init",
     "initial_indicators",
     "step",
-    "SweepDraws",
-    "sweep_draws",
     "run_chain",
     "sample",
     "sample_in_chunks",
@@ -262,30 +260,8 @@ def _factor_slots(stats: SuffStats, slot_idx, v_s):
     return chol, 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol))), mean, jnp.dot(bs, mean), mm, bs
 
 
-class SweepDraws(NamedTuple):
-    """The random numbers of one sweep that do not depend on the chain's state: drawn from the
-    sweep's key by :func:`sweep_draws`, for many sweeps at once in :func:`run_chain`."""
-
-    key_gamma: jax.Array  # key of the sweep's gamma variates (their rejection loop needs the state)
-    order: jax.Array  # (K,) int: the indicators' order
-    uniforms: jax.Array  # (K,) the indicators' uniforms
-    normals: jax.Array  # (R,) standard normals of the theta draw
-
-
-def sweep_draws(key: jax.Array, K: int, R: int, dtype=jnp.float64) -> SweepDraws:
-    """The state-free random numbers of the sweep with key ``key`` (``K`` terms, ``R`` slots)."""
-    k_ind, k_gamma, k_theta = jax.random.split(key, 3)
-    key_order, key_u = jax.random.split(k_ind)
-    return SweepDraws(
-        k_gamma,
-        jax.random.permutation(key_order, K),
-        jax.random.uniform(key_u, (K,), dtype=dtype),
-        jax.random.normal(k_theta, (R,), dtype=dtype),
-    )
-
-
-def _indicator_sweep(order, uniforms, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrior, R: int):
-    """Update every indicator once, in the order ``order (K,)``, with the uniforms ``uniforms (K,)``.
+def _indicator_sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrior, R: int):
+    """Update every indicator once, in random order.
 
     The inverse ``P (R, R)`` of the active block lives in ``R = max_active`` slots, so adding or
     removing a term is a rank-one update costing O(R^2) <= O(K^2).
@@ -298,6 +274,9 @@ def _indicator_sweep(order, uniforms, gamma, p0, v_s, stats: SuffStats, prior: S
     chol, logdet, _, quad, mm, _ = _factor_slots(stats, slot_idx, v_s)
     P = cho_solve((chol, True), eye) * mm
     logit_p0 = jnp.log(p0) - jnp.log1p(-p0)
+    key_order, key_u = jax.random.split(key)
+    order = jax.random.permutation(key_order, K)
+    uniforms = jax.random.uniform(key_u, (K,), dtype=dtype)
 
     def body(i, carry):
         P, slot_idx, slot_of, gamma, logdet, quad, r = carry
@@ -368,30 +347,26 @@ def step(
     ``max_active`` (static, default ``min(K, 32)``) caps the number of active terms; the
     sampler then targets the prior truncated to models of at most that size.
     """
+    k_ind, k_gamma, k_theta = jax.random.split(key, 3)
     K = stats.gram.shape[0]
     R = _max_active(K, max_active)
-    return _step_from_draws(sweep_draws(key, K, R, stats.gram.dtype), state, stats, prior, R)
-
-
-def _step_from_draws(draws: SweepDraws, state: GibbsState, stats: SuffStats, prior: SpikeSlabPrior, R: int):
-    """:func:`step` with its state-free random numbers already drawn."""
-    K = stats.gram.shape[0]
     dtype = stats.gram.dtype
-    gamma = _indicator_sweep(draws.order, draws.uniforms, state.gamma, state.p0, state.v_s, stats, prior, R)
+    gamma = _indicator_sweep(k_ind, state.gamma, state.p0, state.v_s, stats, prior, R)
     r = jnp.sum(gamma).astype(dtype)
 
     # Every gamma variate of the sweep in one call (sigma2, v_s and p0 = G_a / (G_a + G_b)),
     # in logs (p0's a_p = 0.1 underflows a plain gamma): one compiled rejection loop, not four.
     shapes = jnp.stack([prior.a_sigma + 0.5 * stats.n, prior.a_v + 0.5 * r, prior.a_p + r, prior.b_p + K - r])
-    log_g = jax.random.loggamma(draws.key_gamma, shapes.astype(dtype), dtype=dtype)
+    log_g = jax.random.loggamma(k_gamma, shapes.astype(dtype), dtype=dtype)
 
     slot_idx, _ = _active_slots(gamma, R)
     chol, logdet, mean, quad, _, _ = _factor_slots(stats, slot_idx, state.v_s)
     resid = jnp.maximum(stats.yty - quad, 1e-300)
     sigma2 = (prior.b_sigma + 0.5 * resid) * jnp.exp(-log_g[0])
 
+    z = jax.random.normal(k_theta, (R,), dtype=dtype)
     m = (slot_idx < K).astype(dtype)
-    theta_slots = (mean + jnp.sqrt(sigma2) * solve_triangular(chol.T, draws.normals, lower=False)) * m
+    theta_slots = (mean + jnp.sqrt(sigma2) * solve_triangular(chol.T, z, lower=False)) * m
     theta = jnp.zeros(K + 1, dtype).at[slot_idx].set(theta_slots)[:K]
 
     v_rate = prior.b_v + 0.5 * jnp.dot(theta, theta) / sigma2
@@ -518,7 +493,7 @@ def sample_in_chunks(
     parts = []
     for i in range(num_chunks):
         states, trace = call(
-            "sampler_chunk", lambda k, s, st: _run_chains_jit(k, s, st, prior, max_active, method, False),
+            "sampler_chunk", lambda k, s, st: _run_chains_jit(k, s, st, prior, max_active, method),
             (keys[:, i * chunk : (i + 1) * chunk], states, scaled), static=(prior, max_active, method),
             unflatten=lambda leaves: (GibbsState(*leaves[:5]), GibbsTrace(*leaves[5:])),
         )
@@ -626,41 +601,14 @@ def _setup(key, scaled, prior, p0, v_s, max_active, num_chains, total, init_stra
     return keys, states
 
 
-def _draws_block(num_steps: int) -> int:
-    """Sweeps whose random numbers are drawn together: the largest divisor of ``num_steps`` up to 50."""
-    return max(d for d in range(1, min(num_steps, 50) + 1) if num_steps % d == 0)
+def _run_keys(keys, state, stats, prior, max_active=None):
+    """Like :func:`run_chain` but from explicit per-step keys."""
 
-
-def _run_keys(keys, state, stats, prior, max_active=None, draws_per_block=True):
-    """Like :func:`run_chain` but from explicit per-step keys ``(num_steps,)``.
-
-    With ``draws_per_block`` the sweeps' state-free random numbers are drawn for blocks of
-    sweeps at once (the same numbers as :func:`step` draws): on CPU each random call inside
-    the loop runs threefry's rounds as a small loop of its own, and drawing them vectorized
-    made a sweep 12% (K = 36) to 33% (K = 8) faster, at 0.7 s more compilation per program. A
-    block of up to 50 sweeps keeps the extra memory small when thousands of chains are
-    vmapped. :func:`sample_in_chunks` draws sweep by sweep instead: its programs are compiled
-    per library size in every process and run short chunks, where compilation costs more
-    than the runtime saved.
-    """
-    K = stats.gram.shape[0]
-    R = _max_active(K, max_active)
-    draw = lambda k: sweep_draws(k, K, R, stats.gram.dtype)  # noqa: E731
-
-    def one(state, draws):
-        state, info = _step_from_draws(draws, state, stats, prior, R)
+    def one(state, key):
+        state, info = step(key, state, stats, prior, max_active)
         return state, GibbsTrace(state.gamma, state.theta, state.sigma2, state.v_s, state.p0, info.log_marginal)
 
-    if not draws_per_block:
-        return jax.lax.scan(lambda state, key: one(state, draw(key)), state, keys)
-    num_steps = keys.shape[0]
-    block = _draws_block(num_steps)
-
-    def run_block(state, block_keys):
-        return jax.lax.scan(one, state, jax.vmap(draw)(block_keys))
-
-    state, trace = jax.lax.scan(run_block, state, keys.reshape(num_steps // block, block, *keys.shape[1:]))
-    return state, jax.tree.map(lambda a: a.reshape(num_steps, *a.shape[2:]), trace)
+    return jax.lax.scan(one, state, keys)
 
 
 def default_batch_method() -> str:
@@ -677,11 +625,11 @@ def batch_map(fn, method: str, *args):
     raise ValueError(f"unknown batch method {method!r} (vectorized or sequential)")
 
 
-def _run_chains(keys, states, stats, prior, max_active, method, draws_per_block=True):
-    return batch_map(lambda k, s: _run_keys(k, s, stats, prior, max_active, draws_per_block), method, keys, states)
+def _run_chains(keys, states, stats, prior, max_active, method):
+    return batch_map(lambda k, s: _run_keys(k, s, stats, prior, max_active), method, keys, states)
 
 
-_run_chains_jit = jax.jit(_run_chains, static_argnums=(3, 4, 5, 6))
+_run_chains_jit = jax.jit(_run_chains, static_argnums=(3, 4, 5))
 
 
 sample_jit = jax.jit(
