@@ -21,13 +21,13 @@ def configure_runtime(cores: str | None = None, cache: str | None = None) -> dic
       ``~/.cache/dtwin-jax/jax``; ``"off"`` disables it). A new process then skips XLA
       compilation, and :mod:`dtwin_jax.aot` keeps the traced sampler, smoothers and
       output-only programs beside it, so it skips their tracing too: the output-only update
-      of 300 records x 1 s, the first call in a new Python process, took 28 s with nothing
-      cached and 6.0-6.3 s with the caches filled (one core; 18.7 and 5.1 s on both).
+      of 300 records x 1 s, the first call in a new Python process, took 24 s with nothing
+      cached and 5.8 s with the caches filled (one core; 16.8 and 5.5-5.7 s on both).
     * Threading (``cores``, else ``$DTWIN_JAX_CORES``): ``"1"`` (the default) pins the
       process to one core, ``"all"`` leaves the affinity alone. XLA sizes its CPU thread pool
       from the cores it may use when it starts and its threads spin while they wait: on this
-      2-core machine with the other core busy, a sampler chain took 0.19 s pinned against
-      0.38 s unpinned; with it idle, 0.19 s against 0.20 s (``benchmarks/thread_pinning.py``).
+      2-core machine a sampler chain took 0.19 s pinned against 0.20 s unpinned with the
+      other core idle, and 0.38 s unpinned with it busy (``benchmarks/thread_pinning.py``).
       Compilation uses every core it may (1.6x faster on two). On a large machine or a GPU
       use ``"all"``.
 
