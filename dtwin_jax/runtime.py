@@ -28,7 +28,7 @@ def configure_runtime(cores: str | None = None, cache: str | None = None) -> dic
       from the cores it may use when it starts and its threads spin while they wait: on this
       2-core machine a sampler chain took 0.19 s pinned against 0.20 s unpinned with the
       other core idle, and 0.38 s unpinned with it busy (``benchmarks/thread_pinning.py``).
-      Compilation uses every core it may (1.6x faster on two). On a large machine or a GPU
+      Compilation uses every core it may (1.8x faster on two). On a large machine or a GPU
       use ``"all"``.
 
     Pinning must come before JAX starts its CPU backend (the first computation): pinning
