@@ -71,6 +71,49 @@ def test_indicator_conditional_matches_exact_enumeration():
     np.testing.assert_allclose(est, exact_pip, atol=0.02)
 
 
+@pytest.mark.parametrize("R", [6, 3])
+def test_sweep_jumping_between_flips_equals_one_at_a_time_sweep(R):
+    """The sweep computes every indicator's log-odds at once and jumps to the next flip: its
+    indicators are those of the plain sweep (one term at a time, in the same order, against the
+    same uniforms, dense formulas), also when the model size cap R binds."""
+    rng = np.random.default_rng(5)
+    N, K = 30, 6
+    L = rng.normal(size=(N, K))
+    L[:, 1] = L[:, 0] + 0.3 * rng.normal(size=N)
+    y = L[:, 0] - 0.5 * L[:, 2] + 0.2 * L[:, 3] + 1.5 * rng.normal(size=N)  # uncertain terms: many flips
+    stats = S.standardize(S.suff_stats(L, y))[0]
+    prior = S.SpikeSlabPrior()
+    p0, v_s = 0.5, 3.0
+    G, b, yty, n = (np.asarray(a) for a in stats)
+
+    def log_marginal(g):
+        A = G[np.ix_(g, g)] + np.eye(g.sum()) / v_s
+        quad = b[g] @ np.linalg.solve(A, b[g]) if g.any() else 0.0
+        logdet = np.linalg.slogdet(A)[1] if g.any() else 0.0
+        shape = prior.a_sigma + 0.5 * n
+        return -0.5 * g.sum() * np.log(v_s) - 0.5 * logdet - shape * np.log(prior.b_sigma + 0.5 * (yty - quad))
+
+    sweep = jax.jit(lambda k, g: S._indicator_sweep(k, g, jnp.asarray(p0), jnp.asarray(v_s), stats, prior, R))
+    gamma, flips = np.zeros(K, bool), 0
+    for key in jax.random.split(jax.random.key(11), 40):
+        key_order, key_u = jax.random.split(key)
+        order = np.asarray(jax.random.permutation(key_order, K))
+        uniforms = np.asarray(jax.random.uniform(key_u, (K,), dtype=jnp.float64))
+        expect = gamma.copy()
+        for i, k in enumerate(order):
+            on, off = expect.copy(), expect.copy()
+            on[k], off[k] = True, False
+            log_odds = np.log(p0 / (1 - p0)) + log_marginal(on) - log_marginal(off)
+            full = not expect[k] and off.sum() >= R
+            expect[k] = uniforms[i] < 1 / (1 + np.exp(-log_odds)) and not full
+        got = np.asarray(sweep(key, jnp.asarray(gamma)))
+        np.testing.assert_array_equal(got, expect)
+        flips += int((got != gamma).sum())
+        gamma = got
+    assert flips >= 40  # the test exercises many flips per sweep, adds and removals
+    assert gamma.sum() <= R
+
+
 def test_step_is_pure_and_deterministic():
     L, y, _ = _problem()
     stats = S.standardize(S.suff_stats(L, y))[0]
