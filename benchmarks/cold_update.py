@@ -2,7 +2,10 @@
 noise), then updated twice in this process; prints the stages of each call and the XLA
 compilation time of every compiled program (from JAX's compile log).
 
-    taskset -c 0 python benchmarks/cold_update.py [example1|example2|example3]
+    taskset -c 0 python benchmarks/cold_update.py [example1|example2|example3] [--records R] [--default-settings]
+
+``--records 300 --default-settings``: the issue's 300 x 1 s ensemble with the default 4 x 2000
+draws (README, Performance: the cold first call); without ``taskset`` XLA compiles on both cores.
 
 Run it in a fresh process with no persistent compilation cache (the default here: the
 library sets none), pinned to one core. Last, the compilation time of one call site of
@@ -23,7 +26,7 @@ from dtwin_jax import SamplerSettings, systems, update_output_only
 from dtwin_jax.measurement import add_noise
 
 
-def main(name: str = "example1") -> None:
+def main(name: str = "example1", records: int = 100, default_settings: bool = False) -> None:
     jax.config.update("jax_log_compiles", True)
     log = io.StringIO()
     handler = logging.StreamHandler(log)
@@ -32,12 +35,13 @@ def main(name: str = "example1") -> None:
     logger.setLevel(logging.DEBUG)
     logger.propagate = False
 
-    settings = SamplerSettings(num_chains=2, num_draws=600, num_burnin=300)  # tests/test_output_only.py's
+    # tests/test_output_only.py's settings, or the package's defaults (4 x 2000 draws)
+    settings = SamplerSettings() if default_settings else SamplerSettings(num_chains=2, num_draws=600, num_burnin=300)
     ex = systems.EXAMPLES[name]().for_output_only()
     start = time.perf_counter()
-    sim = systems.simulate_example_sde(ex, jax.random.key(0), num_records=100)
+    sim = systems.simulate_example_sde(ex, jax.random.key(0), num_records=records)
     x = np.asarray(add_noise(jax.random.key(1), sim["x"], 0.05))
-    print(f"{name}: simulation, first call {time.perf_counter() - start:.2f} s")
+    print(f"{name}, {records} records: simulation, first call {time.perf_counter() - start:.2f} s")
     for call in ("first", "second"):
         start = time.perf_counter()
         result = update_output_only(ex.system.nominal, sim["t"], x, library=ex.library_output_only, settings=settings)
@@ -74,4 +78,7 @@ def _compile_times() -> None:
 
 
 if __name__ == "__main__":
-    main(*sys.argv[1:])
+    args = sys.argv[1:]
+    records = int(args[args.index("--records") + 1]) if "--records" in args else 100
+    names = [a for i, a in enumerate(args) if not a.startswith("--") and (i == 0 or args[i - 1] != "--records")]
+    main(*names[:1], records=records, default_settings="--default-settings" in args)
