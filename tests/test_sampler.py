@@ -20,6 +20,16 @@ def _problem(seed=0, N=400, K=12, noise=0.3):
     return L, y, theta
 
 
+def _dense_log_marginal(stats, gamma, v_s, prior):
+    """log p(y | gamma, v_s) up to a constant, from the dense active block (Appendix A)."""
+    G, b, yty, n = (np.asarray(a) for a in stats)
+    A = G[np.ix_(gamma, gamma)] + np.eye(gamma.sum()) / v_s
+    quad = b[gamma] @ np.linalg.solve(A, b[gamma]) if gamma.any() else 0.0
+    logdet = np.linalg.slogdet(A)[1] if gamma.any() else 0.0
+    shape = prior.a_sigma + 0.5 * n
+    return -0.5 * gamma.sum() * np.log(v_s) - 0.5 * logdet - shape * np.log(prior.b_sigma + 0.5 * (yty - quad))
+
+
 def test_recovers_support_and_coefficients():
     L, y, theta = _problem()
     # The chunked runner: sample_jit's draws, from the compiled chunk other tests here share.
@@ -49,13 +59,7 @@ def test_indicator_conditional_matches_exact_enumeration():
     logp = {}
     for bits in range(2**K):
         g = np.array([(bits >> k) & 1 for k in range(K)], dtype=bool)
-        A = np.asarray(stats.gram)[np.ix_(g, g)] + np.eye(g.sum()) / v_s
-        b = np.asarray(stats.xty)[g]
-        quad = b @ np.linalg.solve(A, b) if g.any() else 0.0
-        logdet = np.linalg.slogdet(A)[1] if g.any() else 0.0
-        resid = float(stats.yty) - quad
-        lml = -0.5 * g.sum() * np.log(v_s) - 0.5 * logdet - (prior.a_sigma + 0.5 * float(stats.n)) * np.log(prior.b_sigma + 0.5 * resid)
-        logp[bits] = lml + g.sum() * np.log(p0) + (K - g.sum()) * np.log1p(-p0)
+        logp[bits] = _dense_log_marginal(stats, g, v_s, prior) + g.sum() * np.log(p0) + (K - g.sum()) * np.log1p(-p0)
     top = max(logp.values())
     exact = {b: np.exp(v - top) for b, v in logp.items()}
     z = sum(exact.values())
@@ -84,15 +88,6 @@ def test_sweep_jumping_between_flips_equals_one_at_a_time_sweep(R):
     stats = S.standardize(S.suff_stats(L, y))[0]
     prior = S.SpikeSlabPrior()
     p0, v_s = 0.5, 3.0
-    G, b, yty, n = (np.asarray(a) for a in stats)
-
-    def log_marginal(g):
-        A = G[np.ix_(g, g)] + np.eye(g.sum()) / v_s
-        quad = b[g] @ np.linalg.solve(A, b[g]) if g.any() else 0.0
-        logdet = np.linalg.slogdet(A)[1] if g.any() else 0.0
-        shape = prior.a_sigma + 0.5 * n
-        return -0.5 * g.sum() * np.log(v_s) - 0.5 * logdet - shape * np.log(prior.b_sigma + 0.5 * (yty - quad))
-
     sweep = jax.jit(lambda k, g: S._indicator_sweep(k, g, jnp.asarray(p0), jnp.asarray(v_s), stats, prior, R))
     gamma, flips = np.zeros(K, bool), 0
     for key in jax.random.split(jax.random.key(11), 40):
@@ -103,7 +98,8 @@ def test_sweep_jumping_between_flips_equals_one_at_a_time_sweep(R):
         for i, k in enumerate(order):
             on, off = expect.copy(), expect.copy()
             on[k], off[k] = True, False
-            log_odds = np.log(p0 / (1 - p0)) + log_marginal(on) - log_marginal(off)
+            log_odds = (np.log(p0 / (1 - p0)) + _dense_log_marginal(stats, on, v_s, prior)
+                        - _dense_log_marginal(stats, off, v_s, prior))
             full = not expect[k] and off.sum() >= R
             expect[k] = uniforms[i] < 1 / (1 + np.exp(-log_odds)) and not full
         got = np.asarray(sweep(key, jnp.asarray(gamma)))
