@@ -264,7 +264,13 @@ def _factor_slots(stats: SuffStats, slot_idx, v_s):
 
 
 def _indicator_sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrior, R: int):
-    """Update every indicator once, in random order (the sweep of the module docstring).
+    """Update every indicator once, in random order (the sweep of the module docstring)."""
+    return _sweep(key, gamma, p0, v_s, stats, prior, R)[0]
+
+
+def _sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrior, R: int):
+    """:func:`_indicator_sweep`, also returning whether any indicator flipped and the active
+    block's factorisation at the start, ``(slot_idx, chol, logdet, mean, quad)``.
 
     The inverse ``P (R, R)`` of the active block lives in ``R = max_active`` slots. An
     indicator's conditional depends on the others only through ``P``, which changes only when
@@ -279,7 +285,8 @@ def _indicator_sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrio
     dtype = G.dtype
     eye = jnp.eye(R, dtype=dtype)
     slot_idx, slot_of = _active_slots(gamma, R)
-    chol, logdet, _, quad, mm, _ = _factor_slots(stats, slot_idx, v_s)
+    chol, logdet, mean, quad, mm, _ = _factor_slots(stats, slot_idx, v_s)
+    start = (slot_idx, chol, logdet, mean, quad)
     P = cho_solve((chol, True), eye) * mm
     occupied = slot_idx < K
     G_act = G[jnp.minimum(slot_idx, K - 1)] * occupied[:, None]  # (R, K): slot j's row of G
@@ -344,7 +351,9 @@ def _indicator_sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrio
     r0 = jnp.sum(gamma).astype(dtype)
     found, k, info = next_flip(P, U, G_act, slot_idx, slot_of, gamma, logdet, quad, r0, 0)
     carry = (found, k, info, P, U, G_act, slot_idx, slot_of, gamma, logdet, quad, r0)
-    return jax.lax.while_loop(lambda c: c[0], flip, carry)[8]
+    # An indicator flips at most once per sweep: the sweep changed gamma if and only if it
+    # found a first flip.
+    return jax.lax.while_loop(lambda c: c[0], flip, carry)[8], found, start
 
 
 def _max_active(K: int, max_active: int | None) -> int:
@@ -367,7 +376,7 @@ def step(
     K = stats.gram.shape[0]
     R = _max_active(K, max_active)
     dtype = stats.gram.dtype
-    gamma = _indicator_sweep(k_ind, state.gamma, state.p0, state.v_s, stats, prior, R)
+    gamma, changed, start = _sweep(k_ind, state.gamma, state.p0, state.v_s, stats, prior, R)
     r = jnp.sum(gamma).astype(dtype)
 
     # Every gamma variate of the sweep in one call (sigma2, v_s and p0 = G_a / (G_a + G_b)),
@@ -375,8 +384,12 @@ def step(
     shapes = jnp.stack([prior.a_sigma + 0.5 * stats.n, prior.a_v + 0.5 * r, prior.a_p + r, prior.b_p + K - r])
     log_g = jax.random.loggamma(k_gamma, shapes.astype(dtype), dtype=dtype)
 
-    slot_idx, _ = _active_slots(gamma, R)
-    chol, logdet, mean, quad, _, _ = _factor_slots(stats, slot_idx, state.v_s)
+    def refactor(_):
+        slot_idx, _ = _active_slots(gamma, R)
+        return (slot_idx,) + _factor_slots(stats, slot_idx, state.v_s)[:4]
+
+    # Most sweeps flip nothing: then the sweep's own factorisation (same gamma, same v_s) serves.
+    slot_idx, chol, logdet, mean, quad = jax.lax.cond(changed, refactor, lambda _: start, None)
     resid = jnp.maximum(stats.yty - quad, 1e-300)
     sigma2 = (prior.b_sigma + 0.5 * resid) * jnp.exp(-log_g[0])
 
