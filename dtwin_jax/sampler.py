@@ -23,7 +23,8 @@ slots (zeros off the active set), refactorised once per sweep (``v_s`` has chang
 indicator's conditional depends on the others only through ``P``, so the sweep computes the
 log-odds of all K indicators at once (O(K R^2)) and jumps to the next one in its order whose
 uniform flips it; a flip is a rank-one Schur-complement update (O(K R)). A sweep costs
-O(K R^2 + flips K R) instead of K sequential O(R^2) steps, with the same draws.
+O(K R^2 + flips K R) instead of K sequential O(R^2) steps, with the same draws. A sweep that
+flips nothing draws ``sigma2`` and ``theta`` from the factorisation it started with.
 
 The kernel follows blackjax: ``init(stats) -> GibbsState`` and
 ``step(key, state, stats) -> (GibbsState, GibbsInfo)`` are pure functions of NamedTuples,
