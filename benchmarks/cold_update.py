@@ -13,10 +13,10 @@ library sets none), pinned to one core. Last, the compilation time of one call s
 ``jnp.linalg.solve`` against ``dtwin_jax.linalg.mass_solve`` (1 x 1), each a fresh program.
 """
 
+import argparse
 import io
 import logging
 import re
-import sys
 import time
 
 import jax
@@ -78,7 +78,9 @@ def _compile_times() -> None:
 
 
 if __name__ == "__main__":
-    args = sys.argv[1:]
-    records = int(args[args.index("--records") + 1]) if "--records" in args else 100
-    names = [a for i, a in enumerate(args) if not a.startswith("--") and (i == 0 or args[i - 1] != "--records")]
-    main(*names[:1], records=records, default_settings="--default-settings" in args)
+    parser = argparse.ArgumentParser(description="Where a cold output-only update's time goes.")
+    parser.add_argument("example", nargs="?", default="example1", choices=sorted(systems.EXAMPLES))
+    parser.add_argument("--records", type=int, default=100)
+    parser.add_argument("--default-settings", action="store_true")
+    args = parser.parse_args()
+    main(args.example, records=args.records, default_settings=args.default_settings)

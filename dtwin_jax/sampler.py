@@ -287,7 +287,7 @@ def _sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrior, R: int)
     eye = jnp.eye(R, dtype=dtype)
     slot_idx, slot_of = _active_slots(gamma, R)
     chol, logdet, mean, quad, mm, _ = _factor_slots(stats, slot_idx, v_s)
-    start = (slot_idx, chol, logdet, mean, quad)
+    initial = (slot_idx, chol, logdet, mean, quad)
     P = cho_solve((chol, True), eye) * mm
     occupied = slot_idx < K
     G_act = G[jnp.minimum(slot_idx, K - 1)] * occupied[:, None]  # (R, K): slot j's row of G
@@ -354,7 +354,7 @@ def _sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrior, R: int)
     carry = (found, k, info, P, U, G_act, slot_idx, slot_of, gamma, logdet, quad, r0)
     # An indicator flips at most once per sweep: the sweep changed gamma if and only if it
     # found a first flip.
-    return jax.lax.while_loop(lambda c: c[0], flip, carry)[8], found, start
+    return jax.lax.while_loop(lambda c: c[0], flip, carry)[8], found, initial
 
 
 def _max_active(K: int, max_active: int | None) -> int:
@@ -377,7 +377,7 @@ def step(
     K = stats.gram.shape[0]
     R = _max_active(K, max_active)
     dtype = stats.gram.dtype
-    gamma, changed, start = _sweep(k_ind, state.gamma, state.p0, state.v_s, stats, prior, R)
+    gamma, changed, initial = _sweep(k_ind, state.gamma, state.p0, state.v_s, stats, prior, R)
     r = jnp.sum(gamma).astype(dtype)
 
     # Every gamma variate of the sweep in one call (sigma2, v_s and p0 = G_a / (G_a + G_b)),
@@ -390,7 +390,7 @@ def step(
         return (slot_idx,) + _factor_slots(stats, slot_idx, state.v_s)[:4]
 
     # Most sweeps flip nothing: then the sweep's own factorisation (same gamma, same v_s) serves.
-    slot_idx, chol, logdet, mean, quad = jax.lax.cond(changed, refactor, lambda _: start, None)
+    slot_idx, chol, logdet, mean, quad = jax.lax.cond(changed, refactor, lambda _: initial, None)
     resid = jnp.maximum(stats.yty - quad, 1e-300)
     sigma2 = (prior.b_sigma + 0.5 * resid) * jnp.exp(-log_g[0])
 
