@@ -6,10 +6,17 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import arviz_stats as az  # arviz's statistics without its plotting (matplotlib) import
 import numpy as np
 
 __all__ = ["EquationPosterior", "format_equation", "format_coefficient"]
+
+
+def _arviz_stats():
+    """arviz's statistics (without its plotting import), loaded on first use: a study or a
+    kernel run that never asks for R-hat, ESS or an HDI does not pay for (or need) it."""
+    import arviz_stats
+
+    return arviz_stats
 
 
 @dataclass(frozen=True)
@@ -63,7 +70,7 @@ class EquationPosterior:
         The order is that of :meth:`chain_selected`. Chains each constant at different values
         (one always includes the term, another never) give ``inf``."""
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.array([_diag(az.rhat, self.gamma[..., k].astype(float)) for k in self.chain_selected()])
+            return np.array([_diag(_arviz_stats().rhat, self.gamma[..., k].astype(float)) for k in self.chain_selected()])
 
     def chain_selected(self) -> np.ndarray:
         """Indices of the terms selected by at least one chain."""
@@ -90,7 +97,7 @@ class EquationPosterior:
             for k in np.flatnonzero(self.gamma.any(axis=(0, 1))):
                 draws = self._conditional(k)
                 if draws.size > 2:
-                    out[k] = np.asarray(az.hdi(draws, prob=0.95))
+                    out[k] = np.asarray(_arviz_stats().hdi(draws, prob=0.95))
             self._cache["hdi"] = out
         return self._cache["hdi"]
 
@@ -101,11 +108,11 @@ class EquationPosterior:
 
     def rhat(self) -> np.ndarray:
         """Rank-normalised split R-hat of each selected coefficient (arviz), ``(n_selected,)``."""
-        return np.array([_diag(az.rhat, self.theta[..., k]) for k in np.flatnonzero(self.selected)])
+        return np.array([_diag(_arviz_stats().rhat, self.theta[..., k]) for k in np.flatnonzero(self.selected)])
 
     def ess_bulk(self) -> np.ndarray:
         return np.array(
-            [_diag(az.ess, self.theta[..., k]) for k in np.flatnonzero(self.selected)]
+            [_diag(_arviz_stats().ess, self.theta[..., k]) for k in np.flatnonzero(self.selected)]
         )
 
     def terms(self) -> list[dict]:

@@ -1,0 +1,193 @@
+"""Many chains and many noise levels in one call: the same benchmark on a CPU or an accelerator.
+
+    python benchmarks/accelerator.py [--quick] [--out DIR] [--budget-s S]
+
+Runs on whatever device jax picks (``JAX_PLATFORMS=cpu`` forces the CPU) and writes
+``accelerator-<platform>.md`` / ``.json`` into ``--out``. Sections:
+
+* chains: one K-term problem (``algorithm1_numpy.make_problem(K, 1000)``), ``C`` chains of
+  5000 draws in one compiled call (``sampler.sample``, the device's default chain method:
+  vectorized on accelerators, sequential on CPU). Compilation timed apart; the run is the best
+  of two calls; only per-chain PIPs and means leave the device (a 4096-chain trace is 6 GB).
+  Each row checks the answer: the pooled PIPs of the three true terms and the largest PIP of
+  the others.
+* agreement: the same 4-chain call on the accelerator and on the host CPU backend; the
+  largest differences of PIPs and posterior means (they need not be bit-identical: the two
+  backends round differently, and a chain that flips once differently then wanders apart).
+* noise sweep: :func:`dtwin_jax.studies.noise_sweep`, example 1, input-output, 14 levels x
+  ``R`` replicates x 4 chains x 2000 draws (+1000 burn-in), one compiled program; first call
+  (with compilation) and second call (cached), and the support recovery at 0 and 60% noise.
+
+``--budget-s``: stop starting new rows once this many seconds have passed (rows already
+written stay), so the run fits a lease of device time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import algorithm1_numpy  # noqa: E402
+
+from dtwin_jax import sampler as S  # noqa: E402
+
+DRAWS = 5000
+N = 1000
+
+
+def _chains_program(num_chains: int, draws: int, platform: str | None = None):
+    """jit of: ``C`` chains on one problem -> per-chain PIPs and means ``(C, K)``, sigma2 ``(C,)``.
+    It runs where its arguments are committed (``jax.device_put``)."""
+    method = "sequential" if (platform or jax.default_backend()) == "cpu" else "vectorized"
+
+    def run(key, stats):
+        tr = S.sample(key, stats, num_draws=draws, num_burnin=0, num_chains=num_chains, chain_method=method)
+        return tr.gamma.mean(1), tr.theta.mean(1), tr.sigma2.mean(1)
+
+    return jax.jit(run), method
+
+
+def _timed(fn, *args):
+    start = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    return out, time.perf_counter() - start
+
+
+def chains_row(K: int, C: int, draws: int) -> dict:
+    L, y = algorithm1_numpy.make_problem(K, N)
+    stats = S.suff_stats(L, y)
+    program, method = _chains_program(C, draws)
+    start = time.perf_counter()
+    compiled = program.lower(jax.random.key(0), stats).compile()
+    compile_s = time.perf_counter() - start
+    _, first = _timed(compiled, jax.random.key(1), stats)
+    (pip, theta, _), second = _timed(compiled, jax.random.key(2), stats)
+    run_s = min(first, second)
+    pip = np.asarray(pip).mean(0)
+    return {
+        "K": K, "chains": C, "draws": draws, "method": method,
+        "compile s": compile_s,
+        "run s": run_s,
+        "chain-sweeps/s": C * draws / run_s,
+        f"s per {DRAWS}-draw chain (amortised)": run_s / C * DRAWS / draws,
+        "min true PIP": float(pip[:3].min()),
+        "max other PIP": float(pip[3:].max()),
+        "theta[:3] mean": [round(float(v), 4) for v in np.asarray(theta).mean(0)[:3]],
+    }
+
+
+def agreement_row(K: int = 36, C: int = 4, draws: int = 2000) -> dict:
+    """Posterior of the same call on the default device and on the host CPU."""
+    L, y = algorithm1_numpy.make_problem(K, N)
+    stats = S.suff_stats(L, y)
+    out = []
+    for device in (jax.devices()[0], jax.devices("cpu")[0]):
+        program, _ = _chains_program(C, draws, device.platform)
+        pip, theta, sigma2 = program(*jax.device_put((jax.random.key(3), stats), device))
+        out.append((device.platform, np.asarray(pip), np.asarray(theta), np.asarray(sigma2)))
+    (a, pa, ta, sa), (b, pb, tb, sb) = out
+    return {
+        "K": K, "chains": C, "draws": draws, "backends": f"{a} vs {b}",
+        "max |PIP diff| (pooled)": float(np.abs(pa.mean(0) - pb.mean(0)).max()),
+        "max |theta mean diff| (pooled)": float(np.abs(ta.mean(0) - tb.mean(0)).max()),
+        "sigma2 mean": [float(sa.mean()), float(sb.mean())],
+        "chains with identical PIPs": int(np.sum(np.all(pa == pb, axis=1))),
+    }
+
+
+def sweep_row(replicates: int, quick: bool) -> dict:
+    from dtwin_jax import studies
+    from dtwin_jax.update import SamplerSettings
+
+    settings = SamplerSettings(num_chains=2, num_draws=500, num_burnin=250) if quick else SamplerSettings()
+    levels = np.linspace(0.0, 0.6, 14)
+    sweep = lambda: studies.noise_sweep("example1", levels, replicates=replicates, framework="input-output",  # noqa: E731
+                                        settings=settings, progress=False)
+    _, first = _timed(sweep)
+    res, second = _timed(sweep)
+    table = res.table()
+    chains = levels.size * replicates * len(res.states) * settings.num_chains
+    return {
+        "levels": levels.size, "replicates": replicates, "chains in the call": chains,
+        "draws": f"{settings.num_chains} x {settings.num_draws} (+{settings.num_burnin})",
+        "first call s (compiles)": first, "second call s": second,
+        "chain-sweeps/s": chains * (settings.num_draws + settings.num_burnin) / second,
+        "support recovery 0% / 60%": f"{table[0]['support_recovery_pct']:.0f} / {table[-1]['support_recovery_pct']:.0f}",
+    }
+
+
+def markdown(title: str, rows: list[dict]) -> str:
+    if not rows:
+        return f"### {title}\n\n(none run)\n"
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
+    lines = [f"### {title}", "", "| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    lines += ["| " + " | ".join(fmt(r.get(k, "")) for k in keys) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true", help="fewer chains and draws (a smoke test)")
+    p.add_argument("--out", default="benchmarks/results")
+    p.add_argument("--budget-s", type=float, default=float("inf"))
+    p.add_argument("--chains", type=int, nargs="+", help="chain counts of the K = 36 rows")
+    p.add_argument("--replicates", type=int, nargs="+", help="replicate counts of the noise sweep")
+    args = p.parse_args(argv)
+    start = time.perf_counter()
+    platform = jax.default_backend()
+    accel = platform != "cpu"
+    device = jax.devices()[0]
+    info = {"platform": platform, "device": getattr(device, "device_kind", str(device)), "jax": jax.__version__,
+            "float64": bool(jax.config.jax_enable_x64)}
+    print(info, flush=True)
+    draws = 500 if args.quick else DRAWS
+    chains = args.chains or ([1, 8] if args.quick else [1, 4096, 1024, 64] if accel else [1, 4, 16])
+    replicates = args.replicates or ([1] if args.quick else [4, 64] if accel else [4])
+    # Most telling rows first: a run cut short by --budget-s keeps them.
+    plan = [("chains", (36, C, draws)) for C in chains[:2]]
+    plan += [("agreement", ())] if accel else []
+    plan += [("sweep", (R, args.quick)) for R in replicates]
+    plan += [("chains", (36, C, draws)) for C in chains[2:]]
+    plan += [("chains", (256, C, draws)) for C in ([1] if args.quick else [1, 1024] if accel else [1])]
+    run = {"chains": chains_row, "agreement": agreement_row, "sweep": sweep_row}
+    results = {"info": info, "chains": [], "agreement": [], "sweep": [], "skipped": []}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def write():
+        text = f"## {info['device']} ({platform}), jax {info['jax']}\n\n" + "\n".join(
+            markdown(t, results[k]) for k, t in [("chains", "Chains in one call"), ("agreement", "Accelerator vs CPU"),
+                                                 ("sweep", "Noise sweep, example 1, input-output")])
+        text += "".join(f"\nnot run: {s}\n" for s in results["skipped"])
+        (out / f"accelerator-{platform}.md").write_text(text)
+        (out / f"accelerator-{platform}.json").write_text(json.dumps(results, indent=1))
+        return text
+
+    for kind, a in plan:
+        if time.perf_counter() - start > args.budget_s:
+            results["skipped"].append(f"{kind}{a}")
+            continue
+        try:
+            row = run[kind](*a)
+        except Exception as err:  # keep the other rows of a lease-bound run
+            results["skipped"].append(f"{kind}{a}: {type(err).__name__}: {err}"[:500])
+            print(results["skipped"][-1], flush=True)
+            continue
+        results[kind].append(row)
+        print(kind, row, f"[{time.perf_counter() - start:.0f} s]", flush=True)
+        write()
+    print(write())
+
+
+if __name__ == "__main__":
+    main()
