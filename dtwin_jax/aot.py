@@ -4,8 +4,9 @@ JAX's persistent compilation cache lets a new process skip XLA compilation, not 
 lowering: for a cold ``dtwin-jax discover`` of a 1 s window those took ~2 s of ~5 (the
 kinematic smoother's Newton noise fit, the sampler). :func:`call` runs a jitted function
 through a serialized :mod:`jax.export` of it, kept beside that cache and keyed by the
-function's name, the shapes and dtypes of its arguments, its static arguments, the jax
-version and a digest of dtwin-jax's source; without a compilation cache directory, or
+function's name, the shapes and dtypes of its arguments, its static arguments, the platform
+it runs on (a program exported for the CPU fails on a GPU), the jax version and a digest of
+dtwin-jax's source; without a compilation cache directory, or
 inside another trace, it is a plain call. Programs with host callbacks (progress bars)
 cannot be exported.
 """
@@ -36,14 +37,21 @@ def call(name: str, fn: Callable, args: tuple, static: tuple = (), unflatten: Ca
     directory = jax.config.jax_compilation_cache_dir
     if not directory or any(isinstance(a, jax.core.Tracer) for a in leaves):
         return fn(*args)  # inside another trace (vmap, jit) the caller's program holds it
-    spec = "|".join([name, repr(static), str(tree), jax.__version__, _source_digest()]
-                    + [f"{jax.typeof(a)}" for a in leaves])
-    key = f"{name}-{hashlib.sha256(spec.encode()).hexdigest()[:32]}"
+    path = _path(directory, name, static, tree, leaves)
+    key = path.stem
     run = _LOADED.get(key)
     if run is None:
-        run = _load_or_export(Path(directory) / "dtwin-export" / f"{key}.bin", fn, tree, leaves)
+        run = _load_or_export(path, fn, tree, leaves)
         _LOADED[key] = run
     return unflatten(run(*leaves))
+
+
+def _path(directory: str, name: str, static: tuple, tree, leaves) -> Path:
+    from jax import export
+
+    spec = "|".join([name, repr(static), str(tree), export.default_export_platform(), jax.__version__,
+                     _source_digest()] + [f"{jax.typeof(a)}" for a in leaves])
+    return Path(directory) / "dtwin-export" / f"{name}-{hashlib.sha256(spec.encode()).hexdigest()[:32]}.bin"
 
 
 @functools.cache
@@ -61,7 +69,9 @@ def _load_or_export(path: Path, fn: Callable, tree, leaves) -> Callable:
 
     if path.is_file():
         try:
-            return jax.jit(export.deserialize(bytearray(path.read_bytes())).call)
+            loaded = export.deserialize(bytearray(path.read_bytes()))
+            if export.default_export_platform() in loaded.platforms:
+                return jax.jit(loaded.call)
         except Exception:  # a partial or foreign file: export it again
             pass
 

@@ -46,3 +46,27 @@ def test_inside_a_trace_it_is_the_plain_function():
     top = kinematic_smoother(ex.system.nominal, ex.dt, *args)  # through aot
     traced = jax.jit(lambda a, b, c: kinematic_smoother(ex.system.nominal, ex.dt, a, b, c))(*args)
     np.testing.assert_allclose(np.asarray(top), np.asarray(traced), rtol=1e-12, atol=1e-15)
+
+
+def test_a_program_exported_for_another_platform_is_exported_again():
+    """A cache shared between a GPU run and a CPU run (seen on a GPU machine: `discover` on the
+    GPU after one on the CPU failed with "exported for platforms ('cpu',) but it is used on
+    ('cuda',)"): the key holds the platform, and a file for another platform found at the
+    key's path is not run."""
+    from jax import export
+
+    x = jnp.arange(3.0)
+    fn = jax.jit(lambda a: (2.0 * a,))
+    name = f"test-{uuid.uuid4().hex[:8]}"
+    path = aot._path(jax.config.jax_compilation_cache_dir, name, (), jax.tree.structure((x,)), [x])
+    assert export.default_export_platform() == "cpu"
+    foreign = export.export(jax.jit(lambda a: (3.0 * a,)), platforms=("cuda",))(x)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(foreign.serialize())
+    try:
+        (got,) = aot.call(name, fn, (x,))
+    finally:
+        path.unlink()
+    np.testing.assert_array_equal(np.asarray(got), [0.0, 2.0, 4.0])
+    other = aot._path(jax.config.jax_compilation_cache_dir, name, (), jax.tree.structure((x,)), [x])
+    assert other == path  # the same key within one platform
