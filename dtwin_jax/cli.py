@@ -401,15 +401,20 @@ def _sweep(args) -> int:
     return 0
 
 
-def console_main() -> int:
+def console_main(argv=None) -> int:
     """The ``dtwin-jax`` command: :func:`configure_runtime` for this process, then :func:`main`.
-    (:func:`main` called from Python leaves the caller's process as it is.)"""
+    (:func:`main` called from Python leaves the caller's process as it is.) Single updates
+    run on the CPU and ``sweep`` on an accelerator where there is one, unless
+    ``$DTWIN_JAX_PLATFORM`` says otherwise (see :func:`configure_runtime`)."""
+    argv = sys.argv[1:] if argv is None else argv
+    args = _parser().parse_args(argv)  # --help and usage errors exit here, before JAX starts
     try:
-        configure_runtime()
+        configure_runtime(platform=os.environ.get("DTWIN_JAX_PLATFORM") or
+                          ("auto" if args.command == "sweep" else "cpu"))
     except DataError as e:
         print(f"dtwin-jax: error: {e}", file=sys.stderr)
         return 2
-    return main()
+    return main(argv)
 
 
 def main(argv=None) -> int:

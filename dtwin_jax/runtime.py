@@ -14,7 +14,7 @@ from dtwin_jax.errors import DataError
 __all__ = ["configure_runtime"]
 
 
-def configure_runtime(cores: str | None = None, cache: str | None = None) -> dict:
+def configure_runtime(cores: str | None = None, cache: str | None = None, platform: str | None = None) -> dict:
     """Set up this process before its first JAX computation.
 
     * A persistent XLA compilation cache (``cache``, else ``$DTWIN_JAX_CACHE``, default
@@ -30,6 +30,13 @@ def configure_runtime(cores: str | None = None, cache: str | None = None) -> dic
       other core idle, and 0.38 s unpinned with it busy (``benchmarks/thread_pinning.py``).
       Compilation uses every core it may (1.8x faster on two). On a large machine or a GPU
       use ``"all"``.
+    * The device (``platform``, else ``$DTWIN_JAX_PLATFORM``, default ``"auto"``): ``"cpu"``
+      keeps JAX on the CPU even where an accelerator is present; ``"auto"`` lets JAX pick (a
+      GPU when there is one). One window's update is a few thousand sequential sweeps of
+      small matrices, which a GPU runs slower than one CPU core (example 1's warm
+      input-output update: 3.4 s on an H200 against 0.35 s here); a study of thousands of
+      chains runs ~60x faster there (``benchmarks/accelerator.py``). The command line picks
+      ``"cpu"`` for its single updates and ``"auto"`` for ``sweep``.
 
     Pinning must come before JAX starts its CPU backend (the first computation): pinning
     every thread afterwards made a chain take 81 s. Returns what was set. Bad values raise
@@ -38,6 +45,12 @@ def configure_runtime(cores: str | None = None, cache: str | None = None) -> dic
     import jax
 
     done = {}
+    platform = platform or os.environ.get("DTWIN_JAX_PLATFORM", "auto")
+    if platform not in ("cpu", "auto"):
+        raise DataError(f"DTWIN_JAX_PLATFORM must be cpu or auto, got {platform!r}")
+    if platform == "cpu":
+        jax.config.update("jax_platforms", "cpu")
+        done["platform"] = "cpu"
     cache = cache or os.environ.get("DTWIN_JAX_CACHE", os.path.join(Path.home(), ".cache", "dtwin-jax", "jax"))
     if cache != "off":
         jax.config.update("jax_compilation_cache_dir", cache)

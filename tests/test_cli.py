@@ -145,16 +145,21 @@ def test_demo_end_to_end(tmp_path):
 def test_runtime_set_up_is_the_command_line_s_only(tmp_path):
     """The `dtwin-jax` process pins itself and caches compiled programs; `main()` called from
     Python leaves the caller's process alone (`dtwin_jax.configure_runtime()` is the opt-in);
-    a bad DTWIN_JAX_CORES is a one-line error."""
+    a bad DTWIN_JAX_CORES or DTWIN_JAX_PLATFORM is a one-line error. `platform="cpu"` keeps JAX
+    on the CPU (the command line's choice for single updates, where a GPU is slower)."""
     import os
 
     before = os.sched_getaffinity(0)
     assert main(["sweep", "--levels", "2", "--out-dir", str(tmp_path / "s")]) == 2  # fails fast, after set-up
     assert os.sched_getaffinity(0) == before
-    env = dict(os.environ, DTWIN_JAX_CORES="many")
-    proc = subprocess.run([sys.executable, "-m", "dtwin_jax.cli", "--help"], capture_output=True, text=True, env=env)
-    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "DTWIN_JAX_CORES" in proc.stderr
-    code = "from dtwin_jax import configure_runtime; import os; print(configure_runtime(), len(os.sched_getaffinity(0)))"
+    for name, value in [("DTWIN_JAX_CORES", "many"), ("DTWIN_JAX_PLATFORM", "gpu")]:
+        env = dict(os.environ, **{name: value})
+        proc = subprocess.run([sys.executable, "-m", "dtwin_jax.cli", "sweep", "--levels", "0.1"],
+                              capture_output=True, text=True, env=env, cwd=tmp_path)
+        assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and name in proc.stderr, proc.stderr
+    assert not any(tmp_path.glob("sweep*"))
+    code = ("from dtwin_jax import configure_runtime; import os, jax; print(configure_runtime(platform='cpu'), "
+            "jax.default_backend(), jax.config.jax_platforms, len(os.sched_getaffinity(0)))")
     env = dict(os.environ, DTWIN_JAX_CACHE=str(tmp_path / "cache"), DTWIN_JAX_CORES="1")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
-    assert str(tmp_path / "cache") in out and out.strip().endswith(" 1")
+    assert str(tmp_path / "cache") in out and out.strip().endswith("cpu cpu 1")
