@@ -11,6 +11,7 @@ import pytest
 from dtwin_jax import sampler, studies, systems, targets
 from dtwin_jax.cli import main
 from dtwin_jax.denoise import auto_half_width
+from dtwin_jax.errors import DataError
 from dtwin_jax.library import parse_library
 from dtwin_jax.measurement import measure
 from dtwin_jax.update import SamplerSettings
@@ -74,6 +75,11 @@ def test_cli_sweep_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, argv):
     err = capsys.readouterr().err.strip()
     assert err.startswith("dtwin-jax: error:") and "\n" not in err
     assert not out.exists()
+
+
+def test_sweep_bad_batch_size_is_a_data_error():
+    with pytest.raises(DataError, match="batch_size must be a positive integer, got 0"):
+        studies.noise_sweep("example1", [0.05], framework="output-only", batch_size=0, progress=False)
 
 
 def test_output_only_sweep_small():
