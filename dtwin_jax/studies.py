@@ -202,9 +202,10 @@ def _sample_program(keys, stats, truth, support, settings, method, pip_threshold
     return jax.tree.map(lambda a: a.reshape((L, Rp, q) + a.shape[1:]), out)
 
 
-# Output-only (level, replicate) pairs vmapped together on an accelerator by default: 64 pairs
-# of 100 records hold ~2.6 GB of statistics, well inside a GPU's memory.
-ACCELERATOR_BATCH = 64
+# Output-only (level, replicate) pairs vmapped together on an accelerator by default. With all
+# 56 pairs of the 14 x 4 sweep at 100 records vmapped, the same program on the CPU held 21.6 GB
+# (~0.4 GB per pair); 16 pairs, ~6 GB, fit a small GPU.
+ACCELERATOR_BATCH = 16
 
 # The pre-averaging window of the diffusion's first guess: static inside a compiled study
 # (the data-driven rule needs concrete values); Newton steps from any such start converge.
@@ -394,8 +395,9 @@ def noise_sweep(
     records of the states per data set; with ``diffusion`` the diffusion too, see the module
     docstring). ``batch_size``: (level, replicate) pairs whose output-only statistics are
     vmapped together; by default one at a time on CPU (no faster vmapped, and bounded
-    memory) and up to :data:`ACCELERATOR_BATCH` at once on an accelerator (the 14 x 4 sweep
-    with 100 records, drift and diffusion: 51 s on an H200, ~40 MB per pair). Returns a :class:`SweepResult` with arrays ``(L, replicates, q, K)``.
+    memory) and up to :data:`ACCELERATOR_BATCH` (16) at once on an accelerator; a large GPU
+    takes more (the 14 x 4 sweep with 100 records, drift and diffusion, all 56 pairs at once:
+    51 s on an H200, ~0.4 GB per pair). Returns a :class:`SweepResult` with arrays ``(L, replicates, q, K)``.
 
     ``progress`` shows one bar step per sampled (level, replicate, equation) problem, advanced
     from inside the compiled program by a host callback; compilation, simulation and the
