@@ -70,7 +70,8 @@ class EquationPosterior:
         The order is that of :meth:`chain_selected`. Chains each constant at different values
         (one always includes the term, another never) give ``inf``."""
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.array([_diag(_arviz_stats().rhat, self.gamma[..., k].astype(float)) for k in self.chain_selected()])
+            rhat = _arviz_stats().rhat
+            return np.array([_diag(rhat, self.gamma[..., k].astype(float)) for k in self.chain_selected()])
 
     def chain_selected(self) -> np.ndarray:
         """Indices of the terms selected by at least one chain."""
@@ -108,12 +109,12 @@ class EquationPosterior:
 
     def rhat(self) -> np.ndarray:
         """Rank-normalised split R-hat of each selected coefficient (arviz), ``(n_selected,)``."""
-        return np.array([_diag(_arviz_stats().rhat, self.theta[..., k]) for k in np.flatnonzero(self.selected)])
+        rhat = _arviz_stats().rhat
+        return np.array([_diag(rhat, self.theta[..., k]) for k in np.flatnonzero(self.selected)])
 
     def ess_bulk(self) -> np.ndarray:
-        return np.array(
-            [_diag(_arviz_stats().ess, self.theta[..., k]) for k in np.flatnonzero(self.selected)]
-        )
+        ess = _arviz_stats().ess
+        return np.array([_diag(ess, self.theta[..., k]) for k in np.flatnonzero(self.selected)])
 
     def terms(self) -> list[dict]:
         """Selected terms as formats.md writes them."""

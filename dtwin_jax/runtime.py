@@ -34,8 +34,9 @@ def configure_runtime(cores: str | None = None, cache: str | None = None, platfo
       keeps JAX on the CPU even where an accelerator is present; ``"auto"`` lets JAX pick (a
       GPU when there is one). One window's update is a few thousand sequential sweeps of
       small matrices, which a GPU runs slower than one CPU core (example 1's warm
-      input-output update: 3.4 s on an H200 against 0.35 s here); a study of thousands of
-      chains runs ~60x faster there (``benchmarks/accelerator.py``). The command line picks
+      input-output update: 3.4 s on an H200 against 0.94 s on one core of the same machine,
+      0.34 s here); a study of thousands of chains runs ~57x one core's rate there
+      (``benchmarks/accelerator.py``). The command line picks
       ``"cpu"`` for its single updates and ``"auto"`` for ``sweep``.
 
     Pinning must come before JAX starts its CPU backend (the first computation): pinning

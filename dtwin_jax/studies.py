@@ -394,10 +394,11 @@ def noise_sweep(
     data set, as the paper) or ``"output-only"`` (an ensemble of ``records`` Brownian-forced
     records of the states per data set; with ``diffusion`` the diffusion too, see the module
     docstring). ``batch_size``: (level, replicate) pairs whose output-only statistics are
-    vmapped together; by default one at a time on CPU (no faster vmapped, and bounded
-    memory) and up to :data:`ACCELERATOR_BATCH` (16) at once on an accelerator; a large GPU
-    takes more (the 14 x 4 sweep with 100 records, drift and diffusion, all 56 pairs at once:
-    51 s on an H200, ~0.4 GB per pair). Returns a :class:`SweepResult` with arrays ``(L, replicates, q, K)``.
+    vmapped together; by default one at a time on CPU (bounded memory) and up to
+    :data:`ACCELERATOR_BATCH` (16) at once on an accelerator; a large GPU takes more (the
+    14 x 4 sweep with 100 records, drift and diffusion, all 56 pairs at once: 51 s on an
+    H200, ~0.4 GB per pair). Returns a :class:`SweepResult` with arrays
+    ``(L, replicates, q, K)``.
 
     ``progress`` shows one bar step per sampled (level, replicate, equation) problem, advanced
     from inside the compiled program by a host callback; compilation, simulation and the

@@ -157,7 +157,7 @@ def test_runtime_set_up_is_the_command_line_s_only(tmp_path):
         proc = subprocess.run([sys.executable, "-m", "dtwin_jax.cli", "sweep", "--levels", "0.1"],
                               capture_output=True, text=True, env=env, cwd=tmp_path)
         assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and name in proc.stderr, proc.stderr
-    assert not any(tmp_path.glob("sweep*"))
+    assert not (tmp_path / "dtwin-sweep").exists()  # the default --out-dir: nothing written
     code = ("from dtwin_jax import configure_runtime; import os, jax; print(configure_runtime(platform='cpu'), "
             "jax.default_backend(), jax.config.jax_platforms, len(os.sched_getaffinity(0)))")
     env = dict(os.environ, DTWIN_JAX_CACHE=str(tmp_path / "cache"), DTWIN_JAX_CORES="1")
