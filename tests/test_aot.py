@@ -1,13 +1,12 @@
 """dtwin_jax.aot: a jitted function run through its exported program, exported once and
-loaded from disk afterwards, gives what the function gives; inside another trace it is a
+loaded from disk afterwards, gives what the function gives; inside another trace, or where
+no process set-up enabled it (the library's default, and the rest of this suite), it is a
 plain call."""
-
-import uuid
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax import aot, sampler, systems
@@ -15,8 +14,16 @@ from dtwin_jax.denoise import kinematic_smoother
 from dtwin_jax.measurement import measure
 
 
-def test_export_then_load_gives_the_same_draws():
-    assert jax.config.jax_compilation_cache_dir  # tests/conftest.py sets one
+@pytest.fixture
+def folder(tmp_path):
+    """Exports enabled for one test, as `configure_runtime` enables them for a process."""
+    aot.enable(tmp_path / "dtwin-export")
+    yield tmp_path / "dtwin-export"
+    aot.enable(None)
+    aot._LOADED.clear()
+
+
+def test_export_then_load_gives_the_same_draws(folder):
     rng = np.random.default_rng(0)
     L = rng.normal(size=(300, 6))
     stats = sampler.suff_stats(L, L[:, 0] - 0.5 * L[:, 1] + rng.normal(size=300))
@@ -25,20 +32,25 @@ def test_export_then_load_gives_the_same_draws():
     # sampler's set-up, small enough to compile in a fraction of a second.
     fn = jax.jit(lambda k, st: jax.vmap(lambda g: sampler.init(st, gamma=g))(sampler.initial_indicators(k, st, 3)))
     direct = fn(key, stats)
-    name = f"test-{uuid.uuid4().hex[:8]}"  # a program this run exports afresh
+    name = "draws"
     exported = aot.call(name, fn, (key, stats), unflatten=lambda leaves: sampler.GibbsState(*leaves))
     aot._LOADED.clear()  # as a new process: read from disk
     loaded = aot.call(name, fn, (key, stats), unflatten=lambda leaves: sampler.GibbsState(*leaves))
-    files = list((Path(jax.config.jax_compilation_cache_dir) / "dtwin-export").glob(f"{name}-*.bin"))
-    assert len(files) == 1
-    files[0].unlink()  # a fresh name each run: leave nothing behind
+    assert len(list(folder.glob(f"{name}-*.bin"))) == 1
     assert np.asarray(direct.gamma).sum(axis=1).min() >= 1  # the starts differ from empty
     for got in (exported, loaded):
         np.testing.assert_array_equal(np.asarray(got.gamma), np.asarray(direct.gamma))
         np.testing.assert_array_equal(np.asarray(got.theta), np.asarray(direct.theta))
 
 
-def test_inside_a_trace_it_is_the_plain_function():
+def test_not_enabled_it_is_the_plain_function():
+    fn = jax.jit(lambda a: (2.0 * a,))
+    (got,) = aot.call("plain", fn, (jnp.arange(3.0),))
+    np.testing.assert_array_equal(np.asarray(got), [0.0, 2.0, 4.0])
+    assert not aot._LOADED
+
+
+def test_inside_a_trace_it_is_the_plain_function(folder):
     ex = systems.example1()
     sim = systems.simulate_example(ex, jax.random.key(0), duration=0.2)
     meas = measure(jax.random.key(1), sim["t"], sim["x"], sim["xdot"], sim["u"], level=0.05)
@@ -48,7 +60,7 @@ def test_inside_a_trace_it_is_the_plain_function():
     np.testing.assert_allclose(np.asarray(top), np.asarray(traced), rtol=1e-12, atol=1e-15)
 
 
-def test_a_program_exported_for_another_platform_is_exported_again():
+def test_a_program_exported_for_another_platform_is_exported_again(folder):
     """A cache shared between a GPU run and a CPU run (seen on a GPU machine: `discover` on the
     GPU after one on the CPU failed with "exported for platforms ('cpu',) but it is used on
     ('cuda',)"): the key holds the platform, and a file for another platform found at the
@@ -57,16 +69,11 @@ def test_a_program_exported_for_another_platform_is_exported_again():
 
     x = jnp.arange(3.0)
     fn = jax.jit(lambda a: (2.0 * a,))
-    name = f"test-{uuid.uuid4().hex[:8]}"
-    path = aot._path(jax.config.jax_compilation_cache_dir, name, (), jax.tree.structure((x,)), [x])
+    path = aot._path(folder, "double", (), jax.tree.structure((x,)), [x])
     assert export.default_export_platform() == "cpu"
     foreign = export.export(jax.jit(lambda a: (3.0 * a,)), platforms=("cuda",))(x)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    folder.mkdir(parents=True)
     path.write_bytes(foreign.serialize())
-    try:
-        (got,) = aot.call(name, fn, (x,))
-        replaced = export.deserialize(bytearray(path.read_bytes())).platforms
-    finally:
-        path.unlink()
+    (got,) = aot.call("double", fn, (x,))
     np.testing.assert_array_equal(np.asarray(got), [0.0, 2.0, 4.0])
-    assert replaced == ("cpu",)  # exported again over the foreign file
+    assert export.deserialize(bytearray(path.read_bytes())).platforms == ("cpu",)  # exported again

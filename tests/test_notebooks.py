@@ -141,8 +141,8 @@ def python3_kernel(tmp_path, monkeypatch):
     }))
     monkeypatch.setenv("JUPYTER_PATH", str(tmp_path / "jupyter"))
     monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
-    # The kernels share one compilation cache (and dtwin_jax.aot's programs) of their own:
-    # their programs are built without most optimizations, unlike the tests'.
+    # The kernels share one compilation cache of their own: their programs are built without
+    # most optimizations, unlike the tests'.
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", os.path.join(os.environ["DTWIN_JAX_CACHE"], "notebooks"))
     monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     monkeypatch.delenv("MPLBACKEND", raising=False)
