@@ -29,13 +29,14 @@ __all__ = ["call", "enable"]
 # key -> jitted call of the exported program, so that a process traces each one once
 _LOADED: dict[str, Callable] = {}
 # the folder of exported programs; None: plain calls (the library's default)
-_FOLDER: list[Path | None] = [None]
+_folder: Path | None = None
 
 
 def enable(folder: str | os.PathLike | None) -> None:
     """Keep exported programs in ``folder`` (None: stop). Process set-up, as the compilation
     cache is: :func:`dtwin_jax.configure_runtime` calls it."""
-    _FOLDER[0] = None if folder is None else Path(folder)
+    global _folder
+    _folder = None if folder is None else Path(folder)
 
 
 def call(name: str, fn: Callable, args: tuple, static: tuple = (), unflatten: Callable = lambda leaves: leaves):
@@ -44,7 +45,7 @@ def call(name: str, fn: Callable, args: tuple, static: tuple = (), unflatten: Ca
     (their ``repr`` is part of the key); ``fn`` returns a pytree of arrays, given back as
     ``unflatten(leaves)`` (default: the list of leaves)."""
     leaves, tree = jax.tree.flatten(args)
-    folder = _FOLDER[0]
+    folder = _folder
     if folder is None or any(isinstance(a, jax.core.Tracer) for a in leaves):
         return fn(*args)  # inside another trace (vmap, jit) the caller's program holds it
     path = _path(folder, name, static, tree, leaves)
