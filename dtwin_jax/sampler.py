@@ -553,7 +553,25 @@ def sample_in_chunks(
 QUICK_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 
 
-@functools.partial(jax.jit, static_argnums=(2, 3, 4, 5, 6, 7), compiler_options=QUICK_COMPILE)
+def _quick_jit(static_argnums):
+    """``jax.jit`` with :data:`QUICK_COMPILE` for a call from Python; inside another trace
+    (an export by :mod:`dtwin_jax.aot`, a caller's jit) the plain function, which that
+    trace's program holds (JAX takes compiler options on top-level programs only)."""
+
+    def wrap(fun):
+        compiled = jax.jit(fun, static_argnums=static_argnums, compiler_options=QUICK_COMPILE)
+
+        @functools.wraps(fun)
+        def call(*args):
+            traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree.leaves(args))
+            return (fun if traced else compiled)(*args)
+
+        return call
+
+    return wrap
+
+
+@_quick_jit(static_argnums=(2, 3, 4, 5, 6, 7))
 def _setup_chunked(key, stats, prior, p0, v_s, max_active, num_chains, init_strategy):
     """:func:`sample`'s set-up but for the per-sweep keys: scaled statistics, scales, one
     key per chain and the starting states."""
@@ -562,7 +580,7 @@ def _setup_chunked(key, stats, prior, p0, v_s, max_active, num_chains, init_stra
     return scaled, col, ys, jax.random.split(key, num_chains), states
 
 
-@functools.partial(jax.jit, static_argnums=(1, 2), compiler_options=QUICK_COMPILE)
+@_quick_jit(static_argnums=(1, 2))
 def _step_keys(chain_keys, total: int, padded: int):
     """``(C, padded)`` per-sweep keys: :func:`sample`'s ``total`` keys per chain, then the
     last one repeated (sweeps that are run and dropped)."""

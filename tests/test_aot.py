@@ -43,6 +43,20 @@ def test_export_then_load_gives_the_same_draws(folder):
         np.testing.assert_array_equal(np.asarray(got.theta), np.asarray(direct.theta))
 
 
+def test_the_chunked_sampler_through_exports_gives_the_plain_draws(folder):
+    # Its set-up program compiles with its own XLA options when called from Python; an
+    # export traces it inside another program, which takes the plain function.
+    rng = np.random.default_rng(1)
+    L = rng.normal(size=(200, 5))
+    stats = sampler.suff_stats(L, L[:, 0] + rng.normal(size=200))
+    kwargs = dict(num_draws=120, num_burnin=30, num_chains=2)
+    exported = sampler.sample_in_chunks(jax.random.key(4), stats, call=aot.call, **kwargs)
+    plain = sampler.sample_in_chunks(jax.random.key(4), stats, **kwargs)
+    assert {p.name.split("-")[0] for p in folder.glob("*.bin")} == {"sampler_setup", "sampler_chunk"}
+    np.testing.assert_array_equal(exported.gamma, plain.gamma)
+    np.testing.assert_allclose(exported.theta, plain.theta, rtol=1e-12, atol=1e-300)
+
+
 def test_not_enabled_it_is_the_plain_function():
     fn = jax.jit(lambda a: (2.0 * a,))
     (got,) = aot.call("plain", fn, (jnp.arange(3.0),))
