@@ -9,9 +9,10 @@ draws (README, Performance: the cold first call); without ``taskset`` XLA compil
 
 Run it in a fresh process with no persistent compilation cache (the default here: the
 library sets none), pinned to one core. Each call prints its CPU time over all threads: on
-n cores a call cannot take less than CPU / n, however its compilations were scheduled. Last, the compilation time of one call site of
-``jax.scipy.linalg.expm`` against ``dtwin_jax.linalg.expm`` (12 x 12) and of
-``jnp.linalg.solve`` against ``dtwin_jax.linalg.mass_solve`` (1 x 1), each a fresh program.
+n cores a call cannot take less than CPU / n, however its compilations were scheduled.
+Last, the compilation time of one call site of ``jax.scipy.linalg.expm`` against
+``dtwin_jax.linalg.expm`` (12 x 12) and of ``jnp.linalg.solve`` against
+``dtwin_jax.linalg.mass_solve`` (1 x 1), each a fresh program.
 """
 
 import argparse
