@@ -46,6 +46,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import cho_solve, solve_triangular
 
+from dtwin_jax.quick_compile import quick_jit
+
 __all__ = [
     "SpikeSlabPrior",
     "SuffStats",
@@ -547,31 +549,7 @@ def sample_in_chunks(
     return trace._replace(theta=trace.theta * factor, sigma2=trace.sigma2 * float(ys) ** 2)
 
 
-# Programs that run once per call for microseconds to milliseconds (the chains' set-up, the
-# per-sweep keys) compile without LLVM's optimizations: half the compilation (0.9 -> 0.5 s
-# at K = 36, 256), the same bits out, runs 1.5x longer (8 -> 13 ms at K = 256, 4 chains).
-QUICK_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
-
-
-def _quick_jit(static_argnums):
-    """``jax.jit`` with :data:`QUICK_COMPILE` for a call from Python; inside another trace
-    (an export by :mod:`dtwin_jax.aot`, a caller's jit) the plain function, which that
-    trace's program holds (JAX takes compiler options on top-level programs only)."""
-
-    def wrap(fun):
-        compiled = jax.jit(fun, static_argnums=static_argnums, compiler_options=QUICK_COMPILE)
-
-        @functools.wraps(fun)
-        def call(*args):
-            traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree.leaves(args))
-            return (fun if traced else compiled)(*args)
-
-        return call
-
-    return wrap
-
-
-@_quick_jit(static_argnums=(2, 3, 4, 5, 6, 7))
+@quick_jit(static_argnums=(2, 3, 4, 5, 6, 7))
 def _setup_chunked(key, stats, prior, p0, v_s, max_active, num_chains, init_strategy):
     """:func:`sample`'s set-up but for the per-sweep keys: scaled statistics, scales, one
     key per chain and the starting states."""
@@ -580,7 +558,7 @@ def _setup_chunked(key, stats, prior, p0, v_s, max_active, num_chains, init_stra
     return scaled, col, ys, jax.random.split(key, num_chains), states
 
 
-@_quick_jit(static_argnums=(1, 2))
+@quick_jit(static_argnums=(1, 2))
 def _step_keys(chain_keys, total: int, padded: int):
     """``(C, padded)`` per-sweep keys: :func:`sample`'s ``total`` keys per chain, then the
     last one repeated (sweeps that are run and dropped)."""

@@ -15,12 +15,12 @@ import dataclasses
 import functools
 from typing import NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 
 from dtwin_jax import aot, kramers_moyal, sampler, statespace
 from dtwin_jax.library import Library
+from dtwin_jax.quick_compile import quick_jit
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.targets import equation_stats
 from dtwin_jax.update.result import SamplerSettings
@@ -72,7 +72,7 @@ def drift_pass(nominal: LinearSecondOrder, lib: Library, x, dt, noise_var, coef,
     return st._replace(gram=_nearest_pd(st.gram)), correction_margin(st.gram)
 
 
-@eqx.filter_jit
+@quick_jit()
 def first_pass_estimate(nominal: LinearSecondOrder, dt, noise_var, trace: sampler.GibbsTrace) -> tuple:
     """The drift of the first pass's draws ``(q, chains, draws, ...)``: ``coef (q, K)``, the
     means of the terms with PIP > 0.5 (others 0), and the library's ``smoothing (m,)``."""
@@ -135,7 +135,7 @@ def correction_margin(gram) -> jax.Array:
     return jnp.linalg.eigvalsh(gram / (scale[..., :, None] * scale[..., None, :]))[..., 0]
 
 
-@eqx.filter_jit
+@quick_jit()
 def brownian_variance(nominal: LinearSecondOrder, dt, noise_var, residual_var) -> jax.Array:
     """The velocities' diffusion ``Gamma (d,)`` seen in the drift regression's residual
     variance ``residual_var (r,)`` (target units), less the measurement noise's share.
