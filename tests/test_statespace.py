@@ -45,3 +45,20 @@ def test_likelihood_recovers_example2_diffusion_where_preaveraging_fails():
     Y, X = statespace.diffusion_targets(lin, y, noise, gamma, (2, 3))
     assert np.allclose(np.mean(np.asarray(Y), axis=(0, 1)), gamma, rtol=5e-3)
     assert X.shape == (y.shape[0], y.shape[1] - 1, 4)
+
+
+def test_linearization_in_blocks_equals_every_sample_at_once():
+    """:func:`statespace.linearize` runs its samples in padded blocks: the same numbers as one
+    vmap over every sample (3 records x 400 steps: one whole block and a padded one)."""
+    ex = systems.example2()
+    step = statespace.DriftStep.true(ex)
+    points = 0.2 * jax.random.normal(jax.random.key(0), (3, 401, 4))
+    lin = statespace.linearize(step, points)
+    x = points[:, :-1].reshape(-1, 4)
+    vel = step.nominal.velocity_index
+    value = jax.vmap(step)(x)
+    jac = jax.vmap(jax.jacfwd(step))(x)
+    local = jax.vmap(lambda xk: statespace.local_gramians(jax.jacfwd(step.rate)(xk), vel, step.dt))(x)
+    assert lin.jac.shape == (3, 400, 4, 4) and lin.unit_cov.shape == (3, 400, 2, 4, 4)
+    for got, want in ((lin.value, value), (lin.jac, jac), (lin.unit_cov, local)):
+        np.testing.assert_allclose(np.asarray(got).reshape(want.shape), np.asarray(want), rtol=1e-12, atol=1e-300)
