@@ -88,6 +88,7 @@ def propagators(nominal: LinearSecondOrder, dt: float) -> tuple[jax.Array, jax.A
     return E[:m, :m], E[:m, m:]
 
 
+@functools.partial(jax.jit, static_argnames="per_record")  # one program: op by op, ten compile
 def noise_variance(x, per_record: bool = False) -> jax.Array:
     """White measurement-noise variance `(m,)` of states `x (R, N, m)`, pooled over records,
     or `(R, m)`, one per record, with `per_record`.

@@ -61,6 +61,7 @@ __all__ = [
     "step",
     "run_chain",
     "sample",
+    "compile_chunked",
     "sample_in_chunks",
     "CHUNK",
 ]
@@ -545,8 +546,37 @@ def sample_in_chunks(
             on_chunk(num_chains * chunk)
     trace = GibbsTrace(*(np.concatenate([np.asarray(p[i]) for p in parts], axis=1)[:, num_burnin:total]
                          for i in range(len(GibbsTrace._fields))))
-    factor = np.asarray(ys / col)
+    factor = np.asarray(ys) / np.asarray(col)
     return trace._replace(theta=trace.theta * factor, sigma2=trace.sigma2 * float(ys) ** 2)
+
+
+def compile_chunked(
+    K: int,
+    *,
+    num_draws: int = 2000,
+    num_burnin: int = 1000,
+    num_chains: int = 4,
+    prior: SpikeSlabPrior = SpikeSlabPrior(),
+    p0: float = 0.1,
+    v_s: float = 10.0,
+    max_active: int | None = None,
+    chain_method: str | None = None,
+    init_strategy: str = "dispersed",
+    chunk: int = CHUNK,
+) -> None:
+    """Compile the programs :func:`sample_in_chunks` runs for ``K`` terms and these
+    settings (the set-up and keys run on a K-term identity problem, milliseconds; the chunk
+    program is lowered and compiled, not run), so that a later call with float64
+    statistics compiles nothing. For a worker thread while the caller builds the statistics
+    (:mod:`dtwin_jax.ahead`)."""
+    method = chain_method or default_batch_method()
+    stats = SuffStats(*(jnp.asarray(a, jnp.float64) for a in (np.eye(K), np.zeros(K), 1.0, 2.0 * K)))
+    key = jax.random.split(jax.random.key(0))[0]  # typed like the keys the callers split
+    scaled, _, _, keys, states = _setup_chunked(key, stats, prior, float(p0), float(v_s), max_active, num_chains,
+                                                init_strategy)
+    total = num_burnin + num_draws
+    keys = _step_keys(keys, total, -(-total // chunk) * chunk)
+    _run_chains_jit.lower(keys[:, :chunk], states, scaled, prior, max_active, method).compile()
 
 
 @quick_jit(static_argnums=(2, 3, 4, 5, 6, 7))

@@ -13,7 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import aot, kramers_moyal, statespace
+from dtwin_jax import aot, kramers_moyal, sampler, statespace
+from dtwin_jax.ahead import Ahead
 from dtwin_jax.checks import residual_checks
 from dtwin_jax.data import check_records
 from dtwin_jax.errors import DataError
@@ -24,6 +25,7 @@ from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.update.lifecycle import check_previous, updated_history, with_previous
 from dtwin_jax.update.output_only_stats import (
     brownian_variance,
+    diffusion_regression,
     diffusion_statistics,
     drift_pass,
     first_pass_estimate,
@@ -31,7 +33,7 @@ from dtwin_jax.update.output_only_stats import (
     first_pass_settings,
 )
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
-from dtwin_jax.update.sampling import _sample_equations, numpy_stats, posteriors
+from dtwin_jax.update.sampling import _sample_equations, _sampler_kwargs, numpy_stats, posteriors
 
 __all__ = ["update_output_only", "OUTPUT_ONLY_LIBRARY", "DIFFUSION_LIBRARY", "MARGIN_WARN"]
 
@@ -74,78 +76,93 @@ def update_output_only(
     check_previous(previous, "output-only", nominal, lib, forget)
     if previous is not None and previous.preprocessing.get("diffusion_library") != dlib.spec:
         raise DataError(f"re-update needs the previous diffusion library '{previous.preprocessing.get('diffusion_library')}'")
-    R, N, m = rec.x.shape
-    dt = rec.dt
     stages = Stages(progress, 5, "output-only update")
-    with stages("drift statistics (Kramers-Moyal)"):
-        noise_var = kramers_moyal.noise_variance(rec.x)
-        check_columns(np.asarray(lib(rec.x.reshape(-1, m)[:: max(1, R * N // 20000)])), lib.names)
-        drift_stats, margin = drift_statistics(nominal, lib, rec.x, dt, noise_var, settings, seed)
-        drift_stats = jax.block_until_ready(with_previous(drift_stats, "drift", previous, forget))
-    names = nominal.state_names
-    regressed = [names[i] for i in nominal.regressed_index]
-    with stages("drift sampling"):
-        trace = jax.block_until_ready(_sample_equations(drift_stats, settings, seed, progress))
-        drift = posteriors(trace, regressed, "drift", lib.names, pip_threshold)
-    with stages("diffusion likelihood (Kalman)"):
-        # One step's mean drift: friction's sign averaged over half a step's Brownian increment.
-        residual_var = np.array([e.sigma2.mean() for e in drift])
-        gamma_drift = brownian_variance(nominal, dt, noise_var, residual_var)
-        step_smoothing = jnp.zeros(m).at[jnp.asarray(nominal.velocity_index)].set(0.5 * dt * gamma_drift)
-        step = statespace.DriftStep.from_coefficients(
-            nominal, lib, np.stack([e.coefficients for e in drift]), dt, step_smoothing
+    with Ahead() as ahead:
+        # The drift sampler's programs depend on the library's size only: compiled beside
+        # the drift statistics' program.
+        for s in (first_pass_settings(settings), settings):
+            ahead.submit("drift", sampler.compile_chunked, lib.K, **_sampler_kwargs(s))
+        R, N, m = rec.x.shape
+        dt = rec.dt
+        with stages("drift statistics (Kramers-Moyal)"):
+            noise_var = kramers_moyal.noise_variance(rec.x)
+            check_columns(np.asarray(lib(rec.x.reshape(-1, m)[:: max(1, R * N // 20000)])), lib.names)
+            drift_stats, margin = drift_statistics(nominal, lib, rec.x, dt, noise_var, settings, seed,
+                                                   ready=lambda: ahead.wait("drift"))
+            drift_stats = jax.block_until_ready(with_previous(drift_stats, "drift", previous, forget))
+        names = nominal.state_names
+        regressed = [names[i] for i in nominal.regressed_index]
+        with stages("drift sampling"):
+            trace = jax.block_until_ready(_sample_equations(drift_stats, settings, seed, progress))
+            drift = posteriors(trace, regressed, "drift", lib.names, pip_threshold)
+        with stages("diffusion likelihood (Kalman)"):
+            # One step's mean drift: friction's sign averaged over half a step's Brownian increment.
+            residual_var = np.array([e.sigma2.mean() for e in drift])
+            gamma_drift = brownian_variance(nominal, dt, noise_var, residual_var)
+            step_smoothing = np.zeros(m)  # on the host: each eager jnp operation compiles a program
+            step_smoothing[np.asarray(nominal.velocity_index)] = 0.5 * dt * np.asarray(gamma_drift)
+            step = statespace.DriftStep.from_coefficients(
+                nominal, lib, np.stack([e.coefficients for e in drift]), dt, jnp.asarray(step_smoothing)
+            )
+            # The likelihood's program depends on the drift's terms; it compiles beside the
+            # pre-averaged first guess, and the programs after it while it runs.
+            y = statespace.segments(rec.x)
+            d, vel = nominal.d, tuple(int(v) for v in nominal.velocity_index)
+            ahead.submit("likelihood", _compile_likelihood, step, dlib, y, noise_var, vel)
+            ahead.submit("diffusion", sampler.compile_chunked, dlib.K, **_sampler_kwargs(settings))
+            ahead.submit("checks", _compile_checks, step, y, vel)
+            fit = diffusion_statistics(step, dlib, rec.x, noise_var, ready=lambda: ahead.wait("likelihood"))
+            check_columns(np.asarray(fit.columns), dlib.names)
+            gamma, fitted_noise, lin, y = fit.gamma, fit.noise, fit.lin, fit.segments
+            gamma_var = np.diag(np.asarray(fit.gamma_cov))
+            stats = jax.block_until_ready(with_previous(fit.stats, "diffusion", previous, forget))
+        with stages("diffusion sampling"):
+            ahead.wait("diffusion")
+            trace = _sample_equations(stats, settings, seed + 1, progress)
+            velocities = [names[i] for i in nominal.velocity_index]
+            diffusion = posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
+        # The drift's posterior-predictive check: one-step innovations of the velocities under
+        # the fitted drift and diffusion, white and unpredictable from the past when it fits.
+        with stages("residual checks"), stages:
+            vel = tuple(int(v) for v in nominal.velocity_index)
+            innov, predicted = statespace.standardized_innovations(lin, y, fitted_noise, gamma, vel)
+            predicted = np.asarray(predicted)
+            checks = {
+                names[v]: residual_checks(np.asarray(innov[..., j]), predicted, vel, names)
+                for j, v in enumerate(vel)
+            }
+        for state, mg in zip(regressed, np.asarray(margin)):
+            checks[f"{state} noise correction"] = margin_check(float(mg))
+        return UpdateResult(
+            mode="output-only",
+            nominal=nominal,
+            library=lib,
+            equations=drift + diffusion,
+            pip_threshold=pip_threshold,
+            settings=settings,
+            seconds=time.perf_counter() - start,
+            preprocessing={
+                "noise_std": np.sqrt(np.asarray(fitted_noise)).tolist(),
+                "drift_direction": "nominal model plus a first-pass sampled estimate",
+                "diffusion_library": dlib.spec,
+                "diffusion_estimator": "extended Kalman likelihood (iterated linearization)",
+                "diffusion_pilot": np.asarray(fit.pilot).tolist(),
+                "diffusion_pilot_window": int(fit.window),
+                "diffusion_ml": np.asarray(gamma).tolist(),
+                "diffusion_ml_std": np.sqrt(gamma_var).tolist(),
+                "diffusion_effective_samples": np.asarray(stats.n).tolist(),
+                "records": int(R),
+                "samples": int(R * N),
+                "stage_seconds": dict(stages.seconds),
+            },
+            checks=checks,
+            statistics={"drift": numpy_stats(drift_stats), "diffusion": numpy_stats(stats)},
+            history=updated_history(previous, "output-only", rec, forget, drift + diffusion, time.perf_counter() - start),
         )
-        fit = diffusion_statistics(step, dlib, rec.x, noise_var)
-        check_columns(np.asarray(fit.columns), dlib.names)
-        gamma, fitted_noise, lin, y = fit.gamma, fit.noise, fit.lin, fit.segments
-        gamma_var = np.diag(np.asarray(fit.gamma_cov))
-        stats = jax.block_until_ready(with_previous(fit.stats, "diffusion", previous, forget))
-    with stages("diffusion sampling"):
-        trace = _sample_equations(stats, settings, seed + 1, progress)
-        velocities = [names[i] for i in nominal.velocity_index]
-        diffusion = posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
-    # The drift's posterior-predictive check: one-step innovations of the velocities under
-    # the fitted drift and diffusion, white and unpredictable from the past when it fits.
-    with stages("residual checks"), stages:
-        vel = tuple(int(v) for v in nominal.velocity_index)
-        innov, predicted = statespace.standardized_innovations(lin, y, fitted_noise, gamma, vel)
-        predicted = np.asarray(predicted)
-        checks = {
-            names[v]: residual_checks(np.asarray(innov[..., j]), predicted, vel, names)
-            for j, v in enumerate(vel)
-        }
-    for state, mg in zip(regressed, np.asarray(margin)):
-        checks[f"{state} noise correction"] = margin_check(float(mg))
-    return UpdateResult(
-        mode="output-only",
-        nominal=nominal,
-        library=lib,
-        equations=drift + diffusion,
-        pip_threshold=pip_threshold,
-        settings=settings,
-        seconds=time.perf_counter() - start,
-        preprocessing={
-            "noise_std": np.sqrt(np.asarray(fitted_noise)).tolist(),
-            "drift_direction": "nominal model plus a first-pass sampled estimate",
-            "diffusion_library": dlib.spec,
-            "diffusion_estimator": "extended Kalman likelihood (iterated linearization)",
-            "diffusion_pilot": np.asarray(fit.pilot).tolist(),
-            "diffusion_pilot_window": int(fit.window),
-            "diffusion_ml": np.asarray(gamma).tolist(),
-            "diffusion_ml_std": np.sqrt(gamma_var).tolist(),
-            "diffusion_effective_samples": np.asarray(stats.n).tolist(),
-            "records": int(R),
-            "samples": int(R * N),
-            "stage_seconds": dict(stages.seconds),
-        },
-        checks=checks,
-        statistics={"drift": numpy_stats(drift_stats), "diffusion": numpy_stats(stats)},
-        history=updated_history(previous, "output-only", rec, forget, drift + diffusion, time.perf_counter() - start),
-    )
 
 
 def drift_statistics(nominal: LinearSecondOrder, lib: Library, x, dt: float, noise_var, settings: SamplerSettings,
-                     seed: int) -> tuple[SuffStats, jax.Array]:
+                     seed: int, ready=lambda: None) -> tuple[SuffStats, jax.Array]:
     """:func:`output_only_drift_stats` of records ``x (R, N, m)`` with ``key(seed)``, run as
     separate programs with the same result: both passes are one program, and the first
     pass's short run is the drift sampling's program (:func:`_sample_equations`), compiled
@@ -161,6 +178,7 @@ def drift_statistics(nominal: LinearSecondOrder, lib: Library, x, dt: float, noi
 
     first, _ = one_pass(jnp.zeros((len(nominal.regressed_index), lib.K)), jnp.zeros(m), first_pass_rows(x))
     first_key = jax.random.split(jax.random.key(seed))[0]
+    ready()
     trace = _sample_equations(first, first_pass_settings(settings), seed, False, key=first_key)
     return one_pass(*first_pass_estimate(nominal, dt, noise_var, trace), R * (N - 2))
 
@@ -189,3 +207,25 @@ def margin_check(margin: float) -> dict:
         "and coefficients unreliable (use fewer terms, more records or less noisy sensors)"
     )
     return {"ok": bool(ok), "warnings": [] if ok else [warning], "min_eigenvalue": float(margin)}
+
+
+def _compile_likelihood(step: statespace.DriftStep, dlib: Library, y, noise_var, vel: tuple[int, ...]) -> None:
+    """Compile the diffusion likelihood and regression for the drift ``step``, the
+    diffusion library ``dlib`` and segments ``y (P, L, m)``."""
+    statespace.diffusion_mle.lower(step, y, noise_var, jnp.ones(len(vel), y.dtype)).compile()
+    lin, gamma, gamma_cov, noise = _likelihood_shapes(step, y, vel)
+    diffusion_regression.lower(dlib, lin, y, noise, gamma, gamma_cov, vel).compile()
+
+
+def _compile_checks(step: statespace.DriftStep, y, vel: tuple[int, ...]) -> None:
+    """Compile the residual checks' innovations (see :func:`_compile_likelihood`)."""
+    lin, gamma, _, noise = _likelihood_shapes(step, y, vel)
+    statespace.standardized_innovations.lower(lin, y, noise, gamma, vel).compile()
+
+
+def _likelihood_shapes(step: statespace.DriftStep, y, vel: tuple[int, ...]) -> tuple:
+    """Shapes of :func:`statespace.diffusion_mle`'s ``(lin, gamma, gamma_cov, noise)``."""
+    P, _, m = y.shape
+    d = len(vel)
+    lin = jax.eval_shape(statespace._linearize_records, step, y)
+    return lin, *(jax.ShapeDtypeStruct(shape, y.dtype) for shape in ((d,), (d, d), (P, m)))

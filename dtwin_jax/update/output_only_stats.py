@@ -31,6 +31,7 @@ __all__ = [
     "DiffusionFit",
     "brownian_variance",
     "correction_margin",
+    "diffusion_regression",
     "diffusion_statistics",
     "drift_pass",
     "first_pass_estimate",
@@ -177,7 +178,7 @@ class DiffusionFit(NamedTuple):
 
 
 def diffusion_statistics(
-    step: statespace.DriftStep, dlib: Library, x, noise_var, *, window: int | None = None
+    step: statespace.DriftStep, dlib: Library, x, noise_var, *, window: int | None = None, ready=lambda: None
 ) -> DiffusionFit:
     """The diffusion library's statistics, given the drift ``step``, from records
     ``x (R, N, m)`` with measurement noise variances ``noise_var (m,)`` (first guesses,
@@ -187,22 +188,33 @@ def diffusion_statistics(
     maximum (:func:`statespace.diffusion_mle`), EM targets at it and their statistics on
     ``dlib`` weighted by :func:`_diffusion_stats`. ``window``: the pre-averaging window;
     None picks it from the data, which needs concrete values, so pass an int under ``jit``.
+    ``ready()`` is called before the likelihood's program runs (:class:`dtwin_jax.ahead.Ahead`).
     """
     nominal = step.nominal
     pilot, window = kramers_moyal.preaveraged_diffusion(
         nominal, x, step.dt, noise_var, step.perturbation, window=window
     )
     y = statespace.segments(x)
+    ready()
     gamma, gamma_cov, noise, lin = aot.call(  # a new process reuses the traced program
         "diffusion_mle", statespace.diffusion_mle, (step, y, noise_var, pilot),
         unflatten=lambda leaves: (*leaves[:3], statespace.Linearization(*leaves[3:])),
     )
     vel = tuple(int(v) for v in nominal.velocity_index)
-    Y, X = statespace.diffusion_targets(lin, y, noise, gamma, vel)
-    Y = Y.reshape(-1, nominal.d)
-    L = dlib(X.reshape(-1, nominal.m))
-    stats = _diffusion_stats(equation_stats(L, Y), Y, gamma, jnp.diagonal(gamma_cov))
+    stats, L = diffusion_regression(dlib, lin, y, noise, gamma, gamma_cov, vel)
     return DiffusionFit(stats, gamma, gamma_cov, noise, lin, y, L, pilot, window)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 6))
+def diffusion_regression(dlib: Library, lin: statespace.Linearization, y, noise, gamma, gamma_cov,
+                         velocity_index: tuple[int, ...]) -> tuple[sampler.SuffStats, jax.Array]:
+    """The EM targets of :func:`statespace.diffusion_targets` at the likelihood's maximum
+    ``gamma (d,)`` (covariance ``gamma_cov (d, d)``, fitted ``noise (P, m)``) regressed on
+    ``dlib`` at the smoothed states: ``(stats, columns (P (L-1), Kd))``, one program."""
+    Y, X = statespace.diffusion_targets(lin, y, noise, gamma, velocity_index)
+    Y = Y.reshape(-1, Y.shape[-1])
+    L = dlib(X.reshape(-1, X.shape[-1]))
+    return _diffusion_stats(equation_stats(L, Y), Y, gamma, jnp.diagonal(gamma_cov)), L
 
 
 def _diffusion_stats(stats: sampler.SuffStats, Y, gamma, gamma_var) -> sampler.SuffStats:
