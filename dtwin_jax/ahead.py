@@ -22,15 +22,20 @@ class Ahead:
     ``with Ahead() as ahead: ahead.submit("diffusion sampler", fn, *args); ...;
     ahead.wait("diffusion sampler")``: ``wait`` blocks until that job is done, so that the
     caller does not compile the same program a second time beside it. Leaving the block
-    drops the jobs not started and waits for the running one."""
+    drops the jobs not started and waits for the running one. ``enabled=False``: no jobs
+    (a process running :mod:`dtwin_jax.aot`'s exported programs, whose stages would not use
+    the programs compiled here)."""
 
-    def __init__(self) -> None:
+    def __init__(self, enabled: bool = True) -> None:
+        self._enabled = enabled
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dtwin-compile-ahead")
         self._jobs: dict[str, list[Future]] = {}
 
     def submit(self, name: str, fn: Callable, *args, **kwargs) -> None:
-        """Queue ``fn(*args, **kwargs)`` under ``name`` (several jobs may share one)."""
-        self._jobs.setdefault(name, []).append(self._pool.submit(fn, *args, **kwargs))
+        """Queue ``fn(*args, **kwargs)`` under ``name`` (several jobs may share one); nothing
+        when not ``enabled``."""
+        if self._enabled:
+            self._jobs.setdefault(name, []).append(self._pool.submit(fn, *args, **kwargs))
 
     def wait(self, name: str) -> None:
         """Block until the jobs named ``name`` are done; their errors are dropped (the

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import jax
 
-__all__ = ["call", "enable"]
+__all__ = ["call", "enable", "enabled"]
 
 # key -> jitted call of the exported program, so that a process traces each one once
 _LOADED: dict[str, Callable] = {}
@@ -37,6 +37,11 @@ def enable(folder: str | os.PathLike | None) -> None:
     cache is: :func:`dtwin_jax.configure_runtime` calls it."""
     global _folder
     _folder = None if folder is None else Path(folder)
+
+
+def enabled() -> bool:
+    """Whether :func:`call` runs exported programs (a folder is set)."""
+    return _folder is not None
 
 
 def call(name: str, fn: Callable, args: tuple, static: tuple = (), unflatten: Callable = lambda leaves: leaves):

@@ -77,7 +77,7 @@ def update_output_only(
     if previous is not None and previous.preprocessing.get("diffusion_library") != dlib.spec:
         raise DataError(f"re-update needs the previous diffusion library '{previous.preprocessing.get('diffusion_library')}'")
     stages = Stages(progress, 5, "output-only update")
-    with Ahead() as ahead:
+    with Ahead(enabled=not aot.enabled()) as ahead:  # exported programs (the CLI) compile apart
         # The drift sampler's programs depend on the library's size only: compiled beside
         # the drift statistics' program.
         for s in (first_pass_settings(settings), settings):
