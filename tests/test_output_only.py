@@ -230,5 +230,7 @@ def test_later_stages_compile_ahead_in_a_worker_thread_and_nothing_compiles_twic
     lowered = [(thread, msg.split(" with ")[0].split(" ")[1], msg.split(" with ")[1]) for thread, msg in lines
                if msg.startswith("Compiling ") and msg.split(" with ")[0].split(" ")[1] in ours]
     assert len(lowered) == len({(name, shapes) for _, name, shapes in lowered}), lowered  # none twice
-    ahead = {name for thread, name, _ in lowered if thread.startswith("dtwin-compile-ahead")}
-    assert {"jit(diffusion_mle)", "jit(diffusion_regression)", "jit(standardized_innovations)"} <= ahead, ahead
+    ahead = [name for thread, name, _ in lowered if thread.startswith("dtwin-compile-ahead")]
+    for name in ("jit(diffusion_mle)", "jit(diffusion_regression)", "jit(standardized_innovations)"):
+        # in the worker, and once: shapes the worker guessed wrong would be lowered again
+        assert ahead.count(name) == 1 and [n for _, n, _ in lowered].count(name) == 1, (name, lowered)

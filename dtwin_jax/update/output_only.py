@@ -225,7 +225,9 @@ def _compile_checks(step: statespace.DriftStep, y, vel: tuple[int, ...]) -> None
 
 def _likelihood_shapes(step: statespace.DriftStep, y, vel: tuple[int, ...]) -> tuple:
     """Shapes of :func:`statespace.diffusion_mle`'s ``(lin, gamma, gamma_cov, noise)``."""
-    P, _, m = y.shape
+    P, L, m = y.shape
     d = len(vel)
-    lin = jax.eval_shape(statespace._linearize_records, step, y)
+    shapes = statespace.Linearization(point=(P, L, m), value=(P, L - 1, m), jac=(P, L - 1, m, m),
+                                      unit_cov=(P, L - 1, d, m, m))
+    lin = statespace.Linearization(*(jax.ShapeDtypeStruct(shape, y.dtype) for shape in shapes))
     return lin, *(jax.ShapeDtypeStruct(shape, y.dtype) for shape in ((d,), (d, d), (P, m)))
