@@ -257,8 +257,11 @@ def _loglik_derivatives(params, lin, y, r, velocity_index):
     over reverse of one function, so the program holds one copy of the filter's derivative
     (separate value, gradient and Hessian calls compiled three; forward over forward was
     4x slower to run at 2d = 4)."""
-    value_and_grad = lambda p: jax.value_and_grad(_loglik)(p, lin, y, r, velocity_index)
-    H, (value, g) = jax.jacfwd(lambda p: (value_and_grad(p)[1], value_and_grad(p)), has_aux=True)(params)
+    def grad_and_value(p):
+        value, g = jax.value_and_grad(_loglik)(p, lin, y, r, velocity_index)
+        return g, (value, g)
+
+    H, (value, g) = jax.jacfwd(grad_and_value, has_aux=True)(params)
     return value, g, H
 
 

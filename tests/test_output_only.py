@@ -203,7 +203,7 @@ def test_noise_correction_margin_flags_noise_beyond_the_library():
 
 
 def test_later_stages_compile_ahead_in_a_worker_thread_and_nothing_compiles_twice():
-    """The diffusion likelihood, its regression, the residual checks and the samplers compile
+    """The diffusion likelihood, the residual checks and the samplers compile
     in :class:`dtwin_jax.ahead.Ahead`'s thread while earlier stages run; the stages then find
     them compiled (a miss would lower the same program again in the main thread)."""
     import logging
@@ -231,6 +231,6 @@ def test_later_stages_compile_ahead_in_a_worker_thread_and_nothing_compiles_twic
                if msg.startswith("Compiling ") and msg.split(" with ")[0].split(" ")[1] in ours]
     assert len(lowered) == len({(name, shapes) for _, name, shapes in lowered}), lowered  # none twice
     ahead = [name for thread, name, _ in lowered if thread.startswith("dtwin-compile-ahead")]
-    for name in ("jit(diffusion_mle)", "jit(diffusion_regression)", "jit(standardized_innovations)"):
+    for name in ("jit(diffusion_mle)", "jit(standardized_innovations)"):
         # in the worker, and once: shapes the worker guessed wrong would be lowered again
         assert ahead.count(name) == 1 and [n for _, n, _ in lowered].count(name) == 1, (name, lowered)

@@ -25,7 +25,6 @@ from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.update.lifecycle import check_previous, updated_history, with_previous
 from dtwin_jax.update.output_only_stats import (
     brownian_variance,
-    diffusion_regression,
     diffusion_statistics,
     drift_pass,
     first_pass_estimate,
@@ -105,12 +104,13 @@ def update_output_only(
                 nominal, lib, np.stack([e.coefficients for e in drift]), dt, jnp.asarray(step_smoothing)
             )
             # The likelihood's program depends on the drift's terms; it compiles beside the
-            # pre-averaged first guess, and the programs after it while it runs.
+            # pre-averaged first guess, the diffusion sampler and the checks while it runs
+            # (the regression after it compiles here: the worker would come to it too late).
             y = statespace.segments(rec.x)
-            d, vel = nominal.d, tuple(int(v) for v in nominal.velocity_index)
-            ahead.submit("likelihood", _compile_likelihood, step, dlib, y, noise_var, vel)
+            vel = tuple(int(v) for v in nominal.velocity_index)
+            ahead.submit("likelihood", _compile_likelihood, step, y, noise_var, vel)
             ahead.submit("diffusion", sampler.compile_chunked, dlib.K, **_sampler_kwargs(settings))
-            ahead.submit("checks", _compile_checks, step, y, vel)
+            ahead.submit("checks", _compile_checks, y, vel)
             fit = diffusion_statistics(step, dlib, rec.x, noise_var, ready=lambda: ahead.wait("likelihood"))
             check_columns(np.asarray(fit.columns), dlib.names)
             gamma, fitted_noise, lin, y = fit.gamma, fit.noise, fit.lin, fit.segments
@@ -124,7 +124,7 @@ def update_output_only(
         # The drift's posterior-predictive check: one-step innovations of the velocities under
         # the fitted drift and diffusion, white and unpredictable from the past when it fits.
         with stages("residual checks"), stages:
-            vel = tuple(int(v) for v in nominal.velocity_index)
+            ahead.wait("checks")
             innov, predicted = statespace.standardized_innovations(lin, y, fitted_noise, gamma, vel)
             predicted = np.asarray(predicted)
             checks = {
@@ -209,25 +209,17 @@ def margin_check(margin: float) -> dict:
     return {"ok": bool(ok), "warnings": [] if ok else [warning], "min_eigenvalue": float(margin)}
 
 
-def _compile_likelihood(step: statespace.DriftStep, dlib: Library, y, noise_var, vel: tuple[int, ...]) -> None:
-    """Compile the diffusion likelihood and regression for the drift ``step``, the
-    diffusion library ``dlib`` and segments ``y (P, L, m)``."""
+def _compile_likelihood(step: statespace.DriftStep, y, noise_var, vel: tuple[int, ...]) -> None:
+    """Compile the diffusion likelihood for the drift ``step`` and segments ``y (P, L, m)``."""
     statespace.diffusion_mle.lower(step, y, noise_var, jnp.ones(len(vel), y.dtype)).compile()
-    lin, gamma, gamma_cov, noise = _likelihood_shapes(step, y, vel)
-    diffusion_regression.lower(dlib, lin, y, noise, gamma, gamma_cov, vel).compile()
 
 
-def _compile_checks(step: statespace.DriftStep, y, vel: tuple[int, ...]) -> None:
-    """Compile the residual checks' innovations (see :func:`_compile_likelihood`)."""
-    lin, gamma, _, noise = _likelihood_shapes(step, y, vel)
-    statespace.standardized_innovations.lower(lin, y, noise, gamma, vel).compile()
-
-
-def _likelihood_shapes(step: statespace.DriftStep, y, vel: tuple[int, ...]) -> tuple:
-    """Shapes of :func:`statespace.diffusion_mle`'s ``(lin, gamma, gamma_cov, noise)``."""
+def _compile_checks(y, vel: tuple[int, ...]) -> None:
+    """Compile the residual checks' innovations for segments ``y (P, L, m)``: the shapes of
+    :func:`statespace.diffusion_mle`'s linearization, fitted diffusion and noise."""
     P, L, m = y.shape
-    d = len(vel)
     shapes = statespace.Linearization(point=(P, L, m), value=(P, L - 1, m), jac=(P, L - 1, m, m),
-                                      unit_cov=(P, L - 1, d, m, m))
+                                      unit_cov=(P, L - 1, len(vel), m, m))
     lin = statespace.Linearization(*(jax.ShapeDtypeStruct(shape, y.dtype) for shape in shapes))
-    return lin, *(jax.ShapeDtypeStruct(shape, y.dtype) for shape in ((d,), (d, d), (P, m)))
+    gamma, noise = jax.ShapeDtypeStruct((len(vel),), y.dtype), jax.ShapeDtypeStruct((P, m), y.dtype)
+    statespace.standardized_innovations.lower(lin, y, noise, gamma, vel).compile()
