@@ -113,8 +113,9 @@ def newton_log_variances(loglik: Callable, params, floor, iterations: int):
     where the Hessian is not negative definite. Fixed iterations, so it jits and vmaps."""
 
     def newton(_, params):
-        g = jax.grad(loglik)(params)
-        H = jax.hessian(loglik)(params)
+        # One copy of the gradient: the Hessian's jacfwd returns it as aux (XLA does not
+        # merge two copies of a filter's scans).
+        H, g = jax.jacfwd(lambda p: (jax.grad(loglik)(p),) * 2, has_aux=True)(params)
         concave = jnp.all(jnp.linalg.eigvalsh(H) < 0)
         safe = jnp.where(concave, H, -jnp.eye(H.shape[0]) * jnp.maximum(jnp.max(jnp.abs(H)), 1.0))
         delta = jnp.clip(-jnp.linalg.solve(safe, g), -1.0, 1.0)
