@@ -5,7 +5,9 @@ A cold update is mostly XLA compilation, and much of the rest (tracing, the filt
 chains) runs on one core; on a 2-core machine a second thread compiling the next stage's
 programs fills the idle core. JAX's caches are shared across threads, so the stage's own
 call then finds its programs compiled. A job that fails is ignored: the stage compiles
-(and reports) for itself.
+(and reports) for itself. JAX's thread-local settings (``with jax.default_device(...)`` and
+the like) do not reach the worker; where they change a program, the worker's copy goes
+unused and the stage compiles its own, as it would without the worker.
 """
 
 from __future__ import annotations
