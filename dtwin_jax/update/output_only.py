@@ -79,8 +79,8 @@ def update_output_only(
     with Ahead(enabled=not aot.enabled()) as ahead:  # exported programs (the CLI) compile apart
         # The drift sampler's programs depend on the library's size only: compiled beside
         # the drift statistics' program.
-        for s in (first_pass_settings(settings), settings):
-            ahead.submit("drift", sampler.compile_chunked, lib.K, **_sampler_kwargs(s))
+        for run in (first_pass_settings(settings), settings):
+            ahead.submit("drift", sampler.compile_chunked, lib.K, **_sampler_kwargs(run))
         R, N, m = rec.x.shape
         dt = rec.dt
         with stages("drift statistics (Kramers-Moyal)"):
@@ -106,7 +106,7 @@ def update_output_only(
             # The likelihood's program depends on the drift's terms; it compiles beside the
             # pre-averaged first guess, the diffusion sampler and the checks while it runs
             # (the regression after it compiles here: the worker would come to it too late).
-            y = statespace.segments(rec.x)
+            y = statespace.segments(rec.x)  # for the worker (diffusion_statistics cuts its own)
             vel = tuple(int(v) for v in nominal.velocity_index)
             ahead.submit("likelihood", _compile_likelihood, step, y, noise_var, vel)
             ahead.submit("diffusion", sampler.compile_chunked, dlib.K, **_sampler_kwargs(settings))
@@ -131,34 +131,34 @@ def update_output_only(
                 names[v]: residual_checks(np.asarray(innov[..., j]), predicted, vel, names)
                 for j, v in enumerate(vel)
             }
-        for state, mg in zip(regressed, np.asarray(margin)):
-            checks[f"{state} noise correction"] = margin_check(float(mg))
-        return UpdateResult(
-            mode="output-only",
-            nominal=nominal,
-            library=lib,
-            equations=drift + diffusion,
-            pip_threshold=pip_threshold,
-            settings=settings,
-            seconds=time.perf_counter() - start,
-            preprocessing={
-                "noise_std": np.sqrt(np.asarray(fitted_noise)).tolist(),
-                "drift_direction": "nominal model plus a first-pass sampled estimate",
-                "diffusion_library": dlib.spec,
-                "diffusion_estimator": "extended Kalman likelihood (iterated linearization)",
-                "diffusion_pilot": np.asarray(fit.pilot).tolist(),
-                "diffusion_pilot_window": int(fit.window),
-                "diffusion_ml": np.asarray(gamma).tolist(),
-                "diffusion_ml_std": np.sqrt(gamma_var).tolist(),
-                "diffusion_effective_samples": np.asarray(stats.n).tolist(),
-                "records": int(R),
-                "samples": int(R * N),
-                "stage_seconds": dict(stages.seconds),
-            },
-            checks=checks,
-            statistics={"drift": numpy_stats(drift_stats), "diffusion": numpy_stats(stats)},
-            history=updated_history(previous, "output-only", rec, forget, drift + diffusion, time.perf_counter() - start),
-        )
+    for state, mg in zip(regressed, np.asarray(margin)):
+        checks[f"{state} noise correction"] = margin_check(float(mg))
+    return UpdateResult(
+        mode="output-only",
+        nominal=nominal,
+        library=lib,
+        equations=drift + diffusion,
+        pip_threshold=pip_threshold,
+        settings=settings,
+        seconds=time.perf_counter() - start,
+        preprocessing={
+            "noise_std": np.sqrt(np.asarray(fitted_noise)).tolist(),
+            "drift_direction": "nominal model plus a first-pass sampled estimate",
+            "diffusion_library": dlib.spec,
+            "diffusion_estimator": "extended Kalman likelihood (iterated linearization)",
+            "diffusion_pilot": np.asarray(fit.pilot).tolist(),
+            "diffusion_pilot_window": int(fit.window),
+            "diffusion_ml": np.asarray(gamma).tolist(),
+            "diffusion_ml_std": np.sqrt(gamma_var).tolist(),
+            "diffusion_effective_samples": np.asarray(stats.n).tolist(),
+            "records": int(R),
+            "samples": int(R * N),
+            "stage_seconds": dict(stages.seconds),
+        },
+        checks=checks,
+        statistics={"drift": numpy_stats(drift_stats), "diffusion": numpy_stats(stats)},
+        history=updated_history(previous, "output-only", rec, forget, drift + diffusion, time.perf_counter() - start),
+    )
 
 
 def drift_statistics(nominal: LinearSecondOrder, lib: Library, x, dt: float, noise_var, settings: SamplerSettings,
