@@ -29,6 +29,7 @@ def quick_jit(static_argnums=()):
             traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree.leaves(args))
             return (fun if traced else compiled)(*args)
 
+        call.lower = compiled.lower  # to compile ahead of a call (dtwin_jax.ahead)
         return call
 
     return wrap

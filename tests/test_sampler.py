@@ -263,3 +263,15 @@ def test_compile_chunked_leaves_nothing_for_sample_in_chunks_to_compile():
     assert {"Compiling jit(_run_chains)", "Compiling jit(_setup_chunked)"} <= set(ahead), ahead
     assert lowered == ahead  # sample_in_chunks compiled none of its programs
     assert trace.gamma.shape == (3, 300, 17)
+
+
+def test_quick_chunks_give_the_same_draws():
+    """``quick=True`` (the chunk program without LLVM's optimizations, for short runs) samples
+    the same chains: identical indicators, coefficients to rounding."""
+    L, y, _ = _problem(K=6)
+    st = S.suff_stats(L, y)
+    a = S.sample_in_chunks(jax.random.key(4), st, num_draws=300, num_burnin=200, num_chains=2)
+    b = S.sample_in_chunks(jax.random.key(4), st, num_draws=300, num_burnin=200, num_chains=2, quick=True)
+    np.testing.assert_array_equal(a.gamma, b.gamma)
+    for x, z in zip(a[1:], b[1:]):
+        np.testing.assert_allclose(x, z, rtol=1e-12)

@@ -109,7 +109,7 @@ def update_output_only(
             y = statespace.segments(rec.x)  # for the worker (diffusion_statistics cuts its own)
             vel = tuple(int(v) for v in nominal.velocity_index)
             ahead.submit("likelihood", _compile_likelihood, step, y, noise_var, vel)
-            ahead.submit("diffusion", sampler.compile_chunked, dlib.K, **_sampler_kwargs(settings))
+            ahead.submit("diffusion", sampler.compile_chunked, dlib.K, **_sampler_kwargs(settings), quick=True)
             ahead.submit("checks", _compile_checks, y, vel)
             fit = diffusion_statistics(step, dlib, rec.x, noise_var, ready=lambda: ahead.wait("likelihood"))
             check_columns(np.asarray(fit.columns), dlib.names)
@@ -118,7 +118,9 @@ def update_output_only(
             stats = jax.block_until_ready(with_previous(fit.stats, "diffusion", previous, forget))
         with stages("diffusion sampling"):
             ahead.wait("diffusion")
-            trace = _sample_equations(stats, settings, seed + 1, progress)
+            # A few terms: the chains run in ~0.1 s, and compiling their program fully
+            # would take longer than running it unoptimized (the same draws).
+            trace = _sample_equations(stats, settings, seed + 1, progress, quick=True)
             velocities = [names[i] for i in nominal.velocity_index]
             diffusion = posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
         # The drift's posterior-predictive check: one-step innovations of the velocities under

@@ -42,12 +42,13 @@ def numpy_stats(stats: sampler.SuffStats) -> sampler.SuffStats:
 
 
 def _sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed: int, progress: bool,
-                      key: jax.Array | None = None) -> sampler.GibbsTrace:
+                      key: jax.Array | None = None, quick: bool = False) -> sampler.GibbsTrace:
     """Draws ``(q, chains, draws, ...)`` (host arrays) for the batched statistics of every
     equation, each by :func:`sampler.sample_in_chunks` with its own key from ``seed`` (or
     ``key``). Its programs depend on K and the chains only, so updates of other lengths, the
     output-only first pass and new processes (:mod:`dtwin_jax.aot`) reuse them.
-    ``progress``: a bar of the sweeps, advanced after each chunk."""
+    ``progress``: a bar of the sweeps, advanced after each chunk; ``quick``: see
+    :func:`sampler.sample_in_chunks`."""
     # Strongly typed float64: a weakly typed count (from a Python scalar) and a re-update's
     # summed one would otherwise be two jit signatures, and the sampler would compile twice.
     stats = sampler.SuffStats(*(jnp.asarray(a, dtype=jnp.float64) for a in stats))
@@ -58,7 +59,7 @@ def _sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed:
     with Bar(progress, sweeps, "Gibbs sweeps"):
         traces = [
             sampler.sample_in_chunks(keys[j], jax.tree.map(lambda a: a[j], stats), **_sampler_kwargs(settings),
-                                     on_chunk=tick if progress else None, call=aot.call)
+                                     on_chunk=tick if progress else None, call=aot.call, quick=quick)
             for j in range(q)
         ]
     return sampler.GibbsTrace(*(np.stack(parts) for parts in zip(*traces)))
