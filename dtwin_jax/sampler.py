@@ -524,8 +524,9 @@ def sample_in_chunks(
     every chunk with the number of sweeps it ran over all chains (a progress bar).
     ``call(name, fn, args, static, unflatten)`` runs each program: :func:`dtwin_jax.aot.call`
     keeps them for new processes; the default calls ``fn(*args)``. ``quick``: the chunk
-    program compiled without LLVM's optimizations (:mod:`dtwin_jax.quick_compile`), the same
-    draws; for short runs, where its compilation outweighs its run.
+    program compiled without LLVM's optimizations (:mod:`dtwin_jax.quick_compile`): the same
+    indicators, coefficients to rounding; for short runs, where its compilation outweighs
+    its run.
     """
     method = chain_method or default_batch_method()
     total = num_burnin + num_draws
