@@ -119,7 +119,7 @@ def update_output_only(
         with stages("diffusion sampling"):
             ahead.wait("diffusion")
             # A few terms: the chains run in ~0.1 s, and compiling their program fully
-            # would take longer than running it unoptimized (the same draws).
+            # would take longer than running it unoptimized (the same indicators).
             trace = _sample_equations(stats, settings, seed + 1, progress, quick=True)
             velocities = [names[i] for i in nominal.velocity_index]
             diffusion = posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
