@@ -39,6 +39,7 @@ starts a posterior with several modes shows up as chains that disagree (per-chai
 from __future__ import annotations
 
 import functools
+import inspect
 from typing import NamedTuple
 
 import jax
@@ -528,21 +529,16 @@ def sample_in_chunks(
     indicators, coefficients to rounding; for short runs, where its compilation outweighs
     its run.
     """
-    method = chain_method or default_batch_method()
+    scaled, col, ys, keys, states, run, static = _chunk_start(
+        key, stats, num_draws=num_draws, num_burnin=num_burnin, num_chains=num_chains, prior=prior, p0=p0, v_s=v_s,
+        max_active=max_active, chain_method=chain_method, init_strategy=init_strategy, chunk=chunk, quick=quick,
+        call=call)
     total = num_burnin + num_draws
-    settings = (prior, float(p0), float(v_s), max_active, num_chains, init_strategy)
-    scaled, col, ys, keys, states = call(
-        "sampler_setup", lambda k, st: _setup_chunked(k, st, *settings), (key, stats), static=settings,
-        unflatten=lambda leaves: (SuffStats(*leaves[:4]), leaves[4], leaves[5], leaves[6], GibbsState(*leaves[7:])),
-    )
-    num_chunks = -(-total // chunk)
-    keys = _step_keys(keys, total, num_chunks * chunk)
-    run = _run_chains_quick if quick else _run_chains_jit
     parts = []
-    for i in range(num_chunks):
+    for i in range(keys.shape[1] // chunk):
         states, trace = call(
-            "sampler_chunk", lambda k, s, st: run(k, s, st, prior, max_active, method),
-            (keys[:, i * chunk : (i + 1) * chunk], states, scaled), static=(prior, max_active, method),
+            "sampler_chunk", lambda k, s, st: run(k, s, st, *static),
+            (keys[:, i * chunk : (i + 1) * chunk], states, scaled), static=static,
             unflatten=lambda leaves: (GibbsState(*leaves[:5]), GibbsTrace(*leaves[5:])),
         )
         parts.append(trace)
@@ -555,35 +551,34 @@ def sample_in_chunks(
     return trace._replace(theta=trace.theta * factor, sigma2=trace.sigma2 * float(ys) ** 2)
 
 
-def compile_chunked(
-    K: int,
-    *,
-    num_draws: int = 2000,
-    num_burnin: int = 1000,
-    num_chains: int = 4,
-    prior: SpikeSlabPrior = SpikeSlabPrior(),
-    p0: float = 0.1,
-    v_s: float = 10.0,
-    max_active: int | None = None,
-    chain_method: str | None = None,
-    init_strategy: str = "dispersed",
-    chunk: int = CHUNK,
-    quick: bool = False,
-) -> None:
-    """Compile the programs :func:`sample_in_chunks` runs for ``K`` terms and these
-    settings (the set-up and keys run on a K-term identity problem, milliseconds; the chunk
-    program is lowered and compiled, not run), so that a later call with float64
-    statistics compiles nothing. For a worker thread while the caller builds the statistics
+def compile_chunked(K: int, **settings) -> None:
+    """Compile the programs :func:`sample_in_chunks` runs for ``K`` terms and ``settings``
+    (its keyword arguments), so that a later call with float64 statistics compiles nothing:
+    the set-up and keys run on a K-term identity problem (milliseconds), the chunk program is
+    lowered and compiled, not run. For a worker thread while the caller builds the statistics
     (:mod:`dtwin_jax.ahead`)."""
-    method = chain_method or default_batch_method()
     stats = SuffStats(*(jnp.asarray(a, jnp.float64) for a in (np.eye(K), np.zeros(K), 1.0, 2.0 * K)))
     key = jax.random.split(jax.random.key(0))[0]  # typed like the keys the callers split
-    scaled, _, _, keys, states = _setup_chunked(key, stats, prior, float(p0), float(v_s), max_active, num_chains,
-                                                init_strategy)
+    bound = inspect.signature(sample_in_chunks).bind(key, stats, **settings)
+    bound.apply_defaults()  # sample_in_chunks' defaults, kept in one place
+    args = {k: v for k, v in bound.arguments.items() if k not in ("key", "stats", "on_chunk")}
+    scaled, _, _, keys, states, run, static = _chunk_start(key, stats, **args)
+    run.lower(keys[:, : args["chunk"]], states, scaled, *static).compile()
+
+
+def _chunk_start(key, stats, *, num_draws, num_burnin, num_chains, prior, p0, v_s, max_active, chain_method,
+                 init_strategy, chunk, quick, call=_plain_call) -> tuple:
+    """:func:`sample_in_chunks`' set-up: ``(scaled, col, ys, keys (C, chunks * chunk),
+    states, run, static)``, ``run(keys, states, scaled, *static)`` the chunk program."""
+    settings = (prior, float(p0), float(v_s), max_active, num_chains, init_strategy)
+    scaled, col, ys, keys, states = call(
+        "sampler_setup", lambda k, st: _setup_chunked(k, st, *settings), (key, stats), static=settings,
+        unflatten=lambda leaves: (SuffStats(*leaves[:4]), leaves[4], leaves[5], leaves[6], GibbsState(*leaves[7:])),
+    )
     total = num_burnin + num_draws
     keys = _step_keys(keys, total, -(-total // chunk) * chunk)
     run = _run_chains_quick if quick else _run_chains_jit
-    run.lower(keys[:, :chunk], states, scaled, prior, max_active, method).compile()
+    return scaled, col, ys, keys, states, run, (prior, max_active, chain_method or default_batch_method())
 
 
 @quick_jit(static_argnums=(2, 3, 4, 5, 6, 7))
