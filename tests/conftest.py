@@ -22,3 +22,32 @@ os.environ["DTWIN_JAX_CACHE"] = _cache  # the command line run in-process uses t
 jax.config.update("jax_compilation_cache_dir", _cache)
 # Every program, the ~2300 small op-by-op ones too: the other worker reuses them.
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
+
+import logging  # noqa: E402
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture
+def lowered_programs():
+    """A list that collects ``(thread name, program name, shapes)`` for every program JAX
+    lowers while the test runs, in any thread (``jax.log_compiles`` is per thread; JAX
+    logs lowering at DEBUG level otherwise). A program found in JAX's caches is not lowered."""
+    found = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            message = record.getMessage()
+            if message.startswith("Compiling "):
+                head, shapes = message.split(" with ", 1)
+                found.append((record.threadName, head.split(" ")[1], shapes))
+
+    logger, handler, level = logging.getLogger("jax"), Keep(), logging.getLogger("jax").level
+    logger.addHandler(handler)
+    logger.setLevel(logging.DEBUG)
+    try:
+        yield found
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)

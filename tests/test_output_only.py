@@ -202,33 +202,16 @@ def test_noise_correction_margin_flags_noise_beyond_the_library():
     assert "noise too large" in margin_check(margins[1])["warnings"][0]
 
 
-def test_later_stages_compile_ahead_in_a_worker_thread_and_nothing_compiles_twice():
+def test_later_stages_compile_ahead_in_a_worker_thread_and_nothing_compiles_twice(lowered_programs):
     """The diffusion likelihood, the residual checks and the samplers compile
     in :class:`dtwin_jax.ahead.Ahead`'s thread while earlier stages run; the stages then find
     them compiled (a miss would lower the same program again in the main thread)."""
-    import logging
-
     ex, t, x = _ensemble("example1", records=7, duration=0.301)  # shapes no other test compiles
-    lines = []
-
-    class Keep(logging.Handler):
-        def emit(self, record):
-            lines.append((record.threadName, record.getMessage()))
-
-    # jax.log_compiles is per thread; the worker's messages go out at DEBUG level.
-    logger, handler, level = logging.getLogger("jax"), Keep(), logging.getLogger("jax").level
-    logger.addHandler(handler)
-    logger.setLevel(logging.DEBUG)
-    try:
-        update_output_only(ex.system.nominal, t, x, library="poly:2", settings=FAST)
-    finally:
-        logger.removeHandler(handler)
-        logger.setLevel(level)
+    update_output_only(ex.system.nominal, t, x, library="poly:2", settings=FAST)
     ours = {"jit(drift_pass)", "jit(_setup_chunked)", "jit(_run_chains)", "jit(first_pass_estimate)",
             "jit(brownian_variance)", "jit(_residual_increments)", "jit(diffusion_mle)", "jit(diffusion_regression)",
             "jit(standardized_innovations)"}
-    lowered = [(thread, msg.split(" with ")[0].split(" ")[1], msg.split(" with ")[1]) for thread, msg in lines
-               if msg.startswith("Compiling ") and msg.split(" with ")[0].split(" ")[1] in ours]
+    lowered = [entry for entry in lowered_programs if entry[1] in ours]
     assert len(lowered) == len({(name, shapes) for _, name, shapes in lowered}), lowered  # none twice
     ahead = [name for thread, name, _ in lowered if thread.startswith("dtwin-compile-ahead")]
     for name in ("jit(diffusion_mle)", "jit(standardized_innovations)"):

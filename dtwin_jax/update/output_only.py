@@ -217,11 +217,8 @@ def _compile_likelihood(step: statespace.DriftStep, y, noise_var, vel: tuple[int
 
 
 def _compile_checks(y, vel: tuple[int, ...]) -> None:
-    """Compile the residual checks' innovations for segments ``y (P, L, m)``: the shapes of
-    :func:`statespace.diffusion_mle`'s linearization, fitted diffusion and noise."""
-    P, L, m = y.shape
-    shapes = statespace.Linearization(point=(P, L, m), value=(P, L - 1, m), jac=(P, L - 1, m, m),
-                                      unit_cov=(P, L - 1, len(vel), m, m))
-    lin = statespace.Linearization(*(jax.ShapeDtypeStruct(shape, y.dtype) for shape in shapes))
+    """Compile the residual checks' innovations for segments ``y (P, L, m)``."""
+    P, _, m = y.shape
     gamma, noise = jax.ShapeDtypeStruct((len(vel),), y.dtype), jax.ShapeDtypeStruct((P, m), y.dtype)
-    statespace.standardized_innovations.lower(lin, y, noise, gamma, vel).compile()
+    statespace.standardized_innovations.lower(statespace.Linearization.shapes(y, len(vel)), y, noise, gamma,
+                                              vel).compile()
