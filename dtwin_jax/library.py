@@ -17,6 +17,8 @@ States are `x1..xm`, inputs `u1..un`. A library spec is a comma-separated list o
 | `terms:E1;E2;...` | exactly the listed expressions, each one of the terms above |
 
 Every term name is the canonical SymPy string of the term: `str(sympy.sympify(name)) == name`.
+Names from outside are parsed by :func:`dtwin_jax.expressions.parse_term`, which runs no
+code; nothing here calls `sympify`.
 """
 
 import functools
@@ -30,14 +32,11 @@ import numpy as np
 import sympy
 
 from dtwin_jax.errors import DataError
+from dtwin_jax.expressions import parse_term
 
 DEFAULT_LIBRARY = "poly:6,sign,abs,xabs,exp,expxx,sin,cos,input"
 FAMILIES = ("poly", "sign", "abs", "xabs", "exp", "expx", "expxx", "sin", "cos", "input")
 _KNOWN = "poly:P, " + ", ".join(FAMILIES[1:])
-
-# Names are parsed with exactly these functions, whatever else sympify knows.
-_FUNCTIONS = {"sign": sympy.sign, "Abs": sympy.Abs, "exp": sympy.exp, "sin": sympy.sin, "cos": sympy.cos}
-
 
 def symbols(num_states: int, num_inputs: int) -> tuple[tuple[sympy.Symbol, ...], tuple[sympy.Symbol, ...]]:
     """`(x1..xm), (u1..un)` as plain SymPy symbols (no assumptions, so they equal `sympify`'s)."""
@@ -47,11 +46,9 @@ def symbols(num_states: int, num_inputs: int) -> tuple[tuple[sympy.Symbol, ...],
 
 
 def to_sympy(name: str) -> sympy.Expr:
-    """Parse a term name into a SymPy expression in `x1..xm`, `u1..un`."""
-    try:
-        return sympy.sympify(name, locals=_FUNCTIONS)
-    except (sympy.SympifyError, SyntaxError, TypeError) as e:
-        raise DataError(f"cannot parse library term {name!r}: {type(e).__name__}") from None
+    """Parse a term name into a SymPy expression in `x1..xm`, `u1..un`, without running
+    code (:func:`dtwin_jax.expressions.parse_term`)."""
+    return parse_term(name)
 
 
 class Library(eqx.Module):
@@ -256,6 +253,20 @@ def _parse_family(token):
     return name, None
 
 
+def _monomial_exponents(expr, xs):
+    """The exponents `(m,)` of `expr` when it is a monomial in the states with coefficient 1
+    (SymPy's canonical `1`, `x`, `x**p` or a product of those), else None. Read from the
+    expression's structure: nothing is expanded."""
+    factors = expr.args if isinstance(expr, sympy.Mul) else (expr,)
+    exponents = [0] * len(xs)
+    for f in factors:
+        base, power = f.as_base_exp()
+        if base not in xs or not (power.is_Integer and power > 0):
+            return None if f != 1 else exponents
+        exponents[xs.index(base)] += int(power)
+    return exponents
+
+
 def _listed_terms(token, xs, us):
     """`[(family, index, name)]` of a `terms:E1;E2;...` token: each expression is matched,
     after SymPy's canonical printing, to the family term that evaluates it."""
@@ -263,6 +274,7 @@ def _listed_terms(token, xs, us):
     if not all(exprs):
         raise DataError(f"library family {token!r} lists an empty term")
     known = {s_.name for s_ in xs + us}
+    families = {}  # the other families' names, generated once per token
     out = []
     for e in exprs:
         expr = to_sympy(e)
@@ -271,12 +283,17 @@ def _listed_terms(token, xs, us):
             raise DataError(f"library term {e!r} uses {unknown[0]!r}, not one of the states x1..x{len(xs)}"
                             + (f" or inputs u1..u{len(us)}" if us else ""))
         name = str(expr)
-        candidates = [("poly", max(1, sympy.Poly(expr, *xs).total_degree()))] if expr.is_polynomial(*xs) \
-            and not expr.free_symbols - set(xs) else []
-        candidates += [(f, None) for f in FAMILIES if f != "poly" and (f != "input" or us)]
-        for family, degree in candidates:
-            idx, raw = _family_terms(family, degree, xs, us)
-            names = raw if family == "poly" else [str(to_sympy(r)) for r in raw]
+        exponents = _monomial_exponents(expr, xs)
+        if exponents is not None:
+            out.append(("poly", tuple(exponents), name))
+            continue
+        for family in FAMILIES[1:]:
+            if family == "input" and not us:
+                continue
+            if family not in families:
+                idx, raw = _family_terms(family, None, xs, us)
+                families[family] = idx, [str(to_sympy(r)) for r in raw]
+            idx, names = families[family]
             if name in names:
                 out.append((family, tuple(idx[names.index(name)]), name))
                 break
