@@ -35,6 +35,8 @@ Guarantees (a twin travels between users and is untrusted):
 * Checksummed and checked: :func:`load_twin` verifies every file's SHA-256 against the
   manifest, then reads it defensively (:mod:`dtwin_jax.twin_files`: no netCDF reader, no
   pickles, every field, shape and dtype checked); any failure is one line naming the file.
+  (:mod:`dtwin_jax.twin_folder` holds the lock, the names a save may remove and the
+  destination check.)
 * Files get the user's umask (0644 and 0755 under umask 022).
 
 Version 1 (``twin.json`` the header, the other files beside it) is still read; the next
@@ -43,156 +45,34 @@ save migrates it, removing only the five file names version 1 wrote.
 
 from __future__ import annotations
 
-import fcntl
 import json
 import os
 import re
-import stat
 import tempfile
-import threading
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
-from dtwin_jax import sampler, twin_files
+from dtwin_jax import sampler, twin_files, twin_folder
 from dtwin_jax.errors import DataError
 from dtwin_jax.io import json_safe, load_nominal, write_nominal
 from dtwin_jax.library import parse_library
 from dtwin_jax.posterior import EquationPosterior
+from dtwin_jax.twin_folder import CONTENT, FORMAT, V1_FILES, check_target, locked
 
 __all__ = ["FORMAT", "VERSION", "save_twin", "load_twin", "locked", "check_target", "twin_revision"]
 
-FORMAT = "dtwin-jax twin"
 VERSION = 2
-_CONTENT = ("header.json", "nominal.toml", "posterior.nc", "statistics.npz", "result.json")
-_V1_FILES = ("twin.json", "nominal.toml", "posterior.nc", "statistics.npz", "result.json")
-_LOCK = ".lock"
-_VERSION_DIR = re.compile(r"v(\d{6})")
-_TMP_DIR = re.compile(r"\.v\d{6}\.tmp-[a-z0-9_]+")  # tempfile.mkdtemp's random part
-_TMP_POINTER = re.compile(r"\.twin\.json\.tmp-[a-z0-9_]+")
-_MAX_BYTES = 1 << 30  # a twin file larger than this is not one we wrote
 _LOAD_TRIES = 5
 
 # Test hook: called with each step's name ("files", "folder", "pointer", "cleanup") of a save.
 _AFTER_STEP = None
-_held = threading.local()  # this thread's held locks: realpath -> depth (re-entrant)
-
-
-def _umask() -> int:
-    old = os.umask(0)
-    os.umask(old)
-    return old
-
-
-@contextmanager
-def locked(path, *, create: bool = False, on_wait=None):
-    """Hold the exclusive lock of the twin folder ``path`` (``fcntl.flock`` on ``path/.lock``)
-    while the ``with`` block runs: other processes' saves and command-line updates wait.
-    Re-entrant within a thread.
-
-    **Arguments:**
-
-    - ``path``: the twin folder; it must hold a twin unless ``create`` (then it is made).
-    - ``on_wait``: called with no arguments once, before waiting for another holder.
-
-    **Returns:** a context manager yielding ``Path(path)``.
-    """
-    path = Path(path)
-    key = os.path.realpath(path)
-    held = _held.__dict__.setdefault("paths", {})
-    if held.get(key):
-        held[key] += 1
-        try:
-            yield path
-        finally:
-            held[key] -= 1
-        return
-    if create:
-        path.mkdir(parents=True, exist_ok=True)
-    elif not (path / "twin.json").is_file():
-        raise DataError(f"twin '{path}' {'does not exist' if not path.exists() else 'is not a twin folder (no twin.json)'}")
-    try:
-        fd = os.open(path / _LOCK, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666)
-    except OSError as e:
-        raise DataError(f"cannot lock twin '{path}': {e.strerror}") from None
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            if on_wait is not None:
-                on_wait()
-            fcntl.flock(fd, fcntl.LOCK_EX)
-        held[key] = 1
-        yield path
-    finally:
-        held.pop(key, None)
-        os.close(fd)  # releases the lock
-
-
-def check_target(path, *, force: bool = False) -> Path:
-    """Refuse a twin destination before any work is done: ``path`` must be absent, an empty
-    folder (or one holding only a killed save's leftovers), or a twin of ours when ``force``
-    (or, for a re-update, the twin it continues), inside a writable folder.
-
-    **Arguments:**
-
-    - ``path``: the twin folder to be written.
-    - ``force``: accept an existing twin (``discover --save-twin --force``).
-
-    **Returns:** ``Path(path)``; raises a one-line :class:`DataError`.
-    """
-    path = Path(path)
-    if path.is_symlink() or (path.exists() and not path.is_dir()):
-        raise DataError(f"twin folder '{path}' exists and is not a folder")
-    if path.is_dir():
-        if _is_twin(path):
-            if not force:
-                raise DataError(f"'{path}' already holds a twin; pass --force to replace it (its history is discarded)")
-        else:
-            foreign = sorted(e for e in os.listdir(path) if not _leftover(path, e))
-            if foreign:
-                raise DataError(f"'{path}' is not empty and not a dtwin-jax twin (it holds '{foreign[0]}'); "
-                                "not writing a twin into it")
-    parent = path
-    while not parent.exists():
-        parent = parent.parent
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise DataError(f"cannot write twin '{path}': '{parent}' is not a writable folder")
-    return path
-
-
-def _is_twin(path: Path) -> bool:
-    """Whether ``path`` holds a ``twin.json`` of ours; one that is not is refused."""
-    pointer = path / "twin.json"
-    if not os.path.lexists(pointer):
-        return False
-    head = _read_json(pointer)
-    if not isinstance(head, dict) or head.get("format") != FORMAT or head.get("version") not in (1, 2):
-        raise DataError(f"'{pointer}' is not a dtwin-jax twin; not writing over it")
-    return True
-
-
-def _leftover(path: Path, entry: str) -> bool:
-    """Whether ``path/entry`` is ours to clean: the lock, a killed save's temporary pointer,
-    or a version or temporary folder holding only our file names."""
-    p = path / entry
-    if entry == _LOCK or _TMP_POINTER.fullmatch(entry):
-        return not p.is_symlink() and p.is_file()
-    if _TMP_DIR.fullmatch(entry) or _VERSION_DIR.fullmatch(entry):
-        return not p.is_symlink() and p.is_dir() and all(_ours(e) for e in os.listdir(p))
-    return False
-
-
-def _ours(name: str) -> bool:
-    """A file name a save writes into a version folder (or a writer's temporary beside one)."""
-    return name in _CONTENT or any(name.startswith(f".{c}.") for c in _CONTENT)
 
 
 def twin_revision(path) -> int:
     """The revision of the twin at ``path`` (0 for a version-1 twin); :func:`load_twin`
     records it on its result as ``twin_revision``."""
-    head = _read_json(Path(path) / "twin.json")
+    head = twin_folder.read_json(Path(path) / "twin.json")
     return int(head.get("revision", 0)) if isinstance(head, dict) else 0
 
 
@@ -226,16 +106,16 @@ def save_twin(result, path, *, expect_revision: int | None = None, replace: bool
         if version and not replace and _normal(history) != _normal(result.history)[:len(history)]:
             raise DataError(f"twin '{path}' holds updates this result does not continue (saved meanwhile, or "
                             "another twin): load it again and re-update, or replace it (--force)")
-        _clean(path, keep=current)
-        used = [int(m.group(1)) for e in os.listdir(path) if (m := _VERSION_DIR.fullmatch(e))]
+        twin_folder.clean(path, keep=current)
+        used = [int(m.group(1)) for e in os.listdir(path) if (m := twin_folder.VERSION_DIR.fullmatch(e))]
         new = f"v{max([revision] + used) + 1:06d}"
-        mode = 0o666 & ~_umask()
+        mode = 0o666 & ~twin_folder.umask()
         tmp = Path(tempfile.mkdtemp(dir=path, prefix=f".{new}.tmp-"))
-        os.chmod(tmp, 0o777 & ~_umask())
+        os.chmod(tmp, 0o777 & ~twin_folder.umask())
         digests = _write_content(tmp, result, mode)
         _step("files")
         os.rename(tmp, path / new)
-        _sync_dir(path)
+        twin_folder.sync_dir(path)
         _step("folder")
         manifest = {"format": FORMAT, "version": VERSION, "revision": int(new[1:]), "current": new, "files": digests}
         fd, ptr = tempfile.mkstemp(dir=path, prefix=".twin.json.tmp-")
@@ -245,11 +125,11 @@ def save_twin(result, path, *, expect_revision: int | None = None, replace: bool
             f.flush()
             os.fsync(f.fileno())
         os.replace(ptr, path / "twin.json")
-        _sync_dir(path)
+        twin_folder.sync_dir(path)
         _step("pointer")
         if version == 1:
-            _remove_ours(path, _V1_FILES[1:], rmdir=False)
-        _clean(path, keep=new)
+            twin_folder.remove_ours(path, V1_FILES[1:], rmdir=False)
+        twin_folder.clean(path, keep=new)
         _step("cleanup")
     return path
 
@@ -275,7 +155,7 @@ def _write_content(folder: Path, result, mode: int) -> dict:
         np.savez(f, **arrays)
     _write_text(folder / "result.json", json.dumps(json_safe(result.to_json()), indent=2, allow_nan=False) + "\n")
     digests = {}
-    for name in _CONTENT:
+    for name in CONTENT:
         with open(folder / name, "rb") as f:
             os.fchmod(f.fileno(), mode)
             os.fsync(f.fileno())
@@ -288,46 +168,12 @@ def _write_text(path: Path, text: str) -> None:
         f.write(text)
 
 
-def _sync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _remove_ours(folder: Path, names, *, rmdir: bool) -> None:
-    """Remove the files ``names`` of ``folder`` (all of :func:`_ours` when None; never a
-    folder), then the folder if ``rmdir`` and it is empty: whatever else it holds stays."""
-    for name in (names if names is not None else [e for e in os.listdir(folder) if _ours(e)]):
-        p = folder / name
-        if os.path.lexists(p) and not p.is_dir():
-            os.unlink(p)
-    if rmdir:
-        try:
-            os.rmdir(folder)
-        except OSError:
-            pass  # holds something we did not write
-
-
-def _clean(path: Path, keep: str | None) -> None:
-    """Remove a killed save's leftovers and version folders other than ``keep``."""
-    for entry in os.listdir(path):
-        p = path / entry
-        if p.is_symlink():
-            continue
-        if _TMP_POINTER.fullmatch(entry) and p.is_file():
-            os.unlink(p)
-        elif (_TMP_DIR.fullmatch(entry) or (_VERSION_DIR.fullmatch(entry) and entry != keep)) and p.is_dir():
-            _remove_ours(p, None, rmdir=True)
-
-
 def _current(path: Path, replace: bool):
     """``(version, revision, current folder name)`` of the twin at ``path``, ``(0, 0, None)``
     when it holds none; a damaged manifest counts as none when it is to be replaced."""
     if not os.path.lexists(path / "twin.json"):
         return 0, 0, None
-    manifest = _read_json(path / "twin.json")
+    manifest = twin_folder.read_json(path / "twin.json")
     if manifest.get("version") == 1:
         return 1, 0, None
     try:
@@ -339,7 +185,7 @@ def _current(path: Path, replace: bool):
 
 
 def _history(path: Path, current: str | None) -> list:
-    head = _read_json(path / current / "header.json" if current else path / "twin.json")
+    head = twin_folder.read_json(path / current / "header.json" if current else path / "twin.json")
     history = head.get("history") if isinstance(head, dict) else None
     if not isinstance(history, list):
         raise DataError(f"twin '{path}' has no readable history; replace it (--force) or remove it")
@@ -351,36 +197,10 @@ def _check_manifest(manifest: dict, name: Path) -> tuple[int, str]:
     if not isinstance(revision, int) or isinstance(revision, bool) or not 1 <= revision <= 999999 \
             or current != f"v{revision:06d}":
         raise DataError(f"'{name}' names no valid revision (revision {revision!r}, current {current!r})")
-    if not isinstance(files, dict) or set(files) != set(_CONTENT) or not all(
+    if not isinstance(files, dict) or set(files) != set(CONTENT) or not all(
             isinstance(v, str) and re.fullmatch(r"[0-9a-f]{64}", v) for v in files.values()):
-        raise DataError(f"'{name}': field 'files' must give the SHA-256 of {', '.join(_CONTENT)}")
+        raise DataError(f"'{name}': field 'files' must give the SHA-256 of {', '.join(CONTENT)}")
     return revision, current
-
-
-def _read_bytes(path: Path) -> bytes:
-    """A regular file's bytes (no link, FIFO or device; at most 1 GiB)."""
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
-    except FileNotFoundError:
-        raise
-    except OSError as e:
-        raise DataError(f"cannot read '{path}': {e.strerror}") from None
-    with os.fdopen(fd, "rb") as f:
-        st = os.fstat(f.fileno())
-        if not stat.S_ISREG(st.st_mode) or st.st_size > _MAX_BYTES:
-            raise DataError(f"'{path}' is not a regular file of at most 1 GiB")
-        return f.read(_MAX_BYTES + 1)
-
-
-def _read_json(path: Path):
-    try:
-        data = _read_bytes(path)
-    except FileNotFoundError:
-        raise DataError(f"'{path}' does not exist") from None
-    try:
-        return json.loads(data)
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DataError(f"'{path}' is not valid JSON: {e}") from None
 
 
 def _header(result) -> dict:
@@ -413,7 +233,7 @@ def _read_files(path: Path):
     verified. Retried when a save replaces the twin while it is read (no lock needed)."""
     pointer = path / "twin.json"
     for _ in range(_LOAD_TRIES):
-        manifest = _read_json(pointer)
+        manifest = twin_folder.read_json(pointer)
         if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
             got = manifest.get("format") if isinstance(manifest, dict) else None
             raise DataError(f"'{pointer}' is not a dtwin-jax twin (format {got!r})")
@@ -421,16 +241,16 @@ def _read_files(path: Path):
             raise DataError(f"twin '{path}' has format version {manifest.get('version')!r}; "
                             f"this dtwin-jax reads 1 and {VERSION}")
         if manifest["version"] == 1:
-            folder, names, revision = path, _V1_FILES, 0
+            folder, names, revision = path, V1_FILES, 0
         else:
             revision, current = _check_manifest(manifest, pointer)
-            folder, names = path / current, _CONTENT
+            folder, names = path / current, CONTENT
             if folder.is_symlink() or not folder.is_dir():
                 raise DataError(f"twin '{path}': '{folder}' is not a folder")
         try:
-            blobs = {name: _read_bytes(folder / name) for name in names}
+            blobs = {name: twin_folder.read_bytes(folder / name) for name in names}
         except FileNotFoundError as e:
-            if _read_json(pointer) != manifest:
+            if twin_folder.read_json(pointer) != manifest:
                 continue  # a save moved the twin on meanwhile: read the new revision
             raise DataError(f"twin '{path}' is not complete (no {Path(e.filename).name})") from None
         if manifest["version"] == VERSION:
@@ -475,8 +295,9 @@ def load_twin(path):
     equations = _equations(head, blobs, folder, version, lib, dlib, nominal)
     statistics = _statistics(head, blobs, folder, equations)
     st = head["settings"]
-    if set(st["prior"]) != set(sampler.SpikeSlabPrior._fields):
-        raise DataError(f"twin header '{head_name}': settings.prior must hold {', '.join(sampler.SpikeSlabPrior._fields)}")
+    fields = sampler.SpikeSlabPrior._fields
+    if set(st["prior"]) != set(fields):
+        raise DataError(f"twin header '{head_name}': settings.prior must hold {', '.join(fields)}")
     settings = SamplerSettings(
         num_chains=st["num_chains"], num_draws=st["num_draws"], num_burnin=st["num_burnin"],
         prior=sampler.SpikeSlabPrior(**st["prior"]), p0=st["p0"], v_s=st["v_s"], max_active=st["max_active"],
@@ -497,7 +318,8 @@ def _equations(head, blobs, folder, version, lib, dlib, nominal) -> list[Equatio
     expected = []
     for eq in head["equations"]:
         tag = f"{eq['state']}_{eq['kind']}"
-        names = tuple(eq["terms"]) if version == VERSION else twin_files.read_term_names(blobs["posterior.nc"], name, tag)
+        names = (tuple(eq["terms"]) if version == VERSION
+                 else twin_files.read_term_names(blobs["posterior.nc"], name, tag))
         want = lib.names if eq["kind"] == "drift" else dlib.names
         if names != want:
             raise DataError(f"twin '{folder}': the terms of {tag} do not match its library "

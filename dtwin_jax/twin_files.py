@@ -199,7 +199,8 @@ def _array(group, key: str, name: str, shape: tuple, kinds: str) -> np.ndarray:
     if ds.shape != shape:
         raise DataError(f"'{name}': dataset '{key}' has shape {ds.shape}; the twin header says {shape}")
     if ds.dtype.kind not in kinds or ds.dtype.itemsize > 8:
-        raise DataError(f"'{name}': dataset '{key}' has dtype {ds.dtype}; expected {'float' if kinds == 'f' else 'integer'}")
+        want = "float" if kinds == "f" else "integer"
+        raise DataError(f"'{name}': dataset '{key}' has dtype {ds.dtype}; expected {want}")
     try:
         a = np.asarray(ds[()])
     except Exception as e:

@@ -123,8 +123,8 @@ TAMPER = {
                                "missing key 'drift_xty'"),
     "statistics wrong shape": (lambda tw, s: _edit_stats(tw, lambda a: a.update(drift_gram=a["drift_gram"][:, :3])),
                                True, "'drift_gram' has shape (1, 3, 46)"),
-    "statistics object array": (lambda tw, s: _edit_stats(tw, lambda a: a.update(drift_n=np.array([{}], dtype=object))),
-                                True, "statistics.npz"),
+    "statistics object array": (
+        lambda tw, s: _edit_stats(tw, lambda a: a.update(drift_n=np.array([{}], dtype=object))), True, "statistics.npz"),
     "header missing settings": (lambda tw, s: _edit_header(tw, lambda h: h.pop("settings")), True,
                                 "field 'settings' is missing"),
     "header unknown state": (lambda tw, s: _edit_header(tw, lambda h: h["equations"][0].update(state="x9")), True,
