@@ -207,8 +207,11 @@ def test_force_replaces_the_twin_but_not_the_files_beside_it(saved, tmp_path):
     other = dataclasses.replace(other, history=[dict(other.history[0], update=1, time="elsewhere")])
     with pytest.raises(DataError, match="does not continue"):
         save_twin(other, twin)
-    save_twin(other, twin, replace=True)
-    assert load_twin(twin).history[0]["time"] == "elsewhere" and (twin / "NOTES.txt").read_text() == "notes"
+    assert main(["discover", str(saved / "w2.npz"), "--nominal", str(saved / "nominal.toml"),
+                 "--save-twin", str(twin), "--force"] + TINY) == 0
+    history = load_twin(twin).history
+    assert len(history) == 1 and history[0]["window_sha256"] != load_twin(saved / "twin").history[0]["window_sha256"]
+    assert (twin / "NOTES.txt").read_text() == "notes"
     assert sorted(os.listdir(twin)) == [".lock", "NOTES.txt", "twin.json", "v000002"]
 
 
