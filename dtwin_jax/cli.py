@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 from pathlib import Path
@@ -86,6 +87,8 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument("--plot", default=None, help="also write a PIP stem plot (PNG)")
     d.add_argument("--save-twin", default=None, metavar="TWIN_DIR",
                    help="also save the updated twin (posterior, nominal, library, history) to this folder")
+    d.add_argument("--force", action="store_true",
+                   help="with --save-twin: replace a twin already there (its history is discarded; other files stay)")
     d.add_argument("--refine", action="store_true",
                    help="input-output: refine the selected coefficients by output error (sharper long free runs)")
     _add_sampler_args(d, draws=2000, burn_in=1000)
@@ -104,6 +107,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="weight of the previous data in the prior, in [0, 1] (default 1: all of it; 0: a fresh update)")
     up.add_argument("--out-twin", default=None, metavar="DIR", help="write the updated twin here (default: replace TWIN_DIR)")
     up.add_argument("--out", default=None, help="result JSON path")
+    up.add_argument("--allow-repeat", action="store_true",
+                    help="accept a window already in the twin's history (its data then count twice)")
     _add_sampler_args(up, draws=2000, burn_in=1000)
 
     demo = sub.add_parser("demo", help="simulate a paper example, update its twin, print and save results")
@@ -152,23 +157,34 @@ def _discover(args) -> int:
         if out:
             _check_writable(out)
     if args.save_twin:
-        _check_writable(args.save_twin, folder=True)
+        from dtwin_jax.store import check_target, locked, save_twin
+
+        check_target(args.save_twin, force=args.force)  # before the long run: refuse a user's folder
+    elif args.force:
+        raise DataError("--force needs --save-twin")
     nominal = load_nominal(args.nominal)
     data = load_measurements(args.data)
     mode = args.mode or ("input-output" if "u" in data else "output-only")
-    result = _update(args, mode, nominal, data, library=args.library, diffusion_library=args.diffusion_library)
-    _report(args, result)
-    if args.save_twin:
-        from dtwin_jax.store import save_twin
-
-        save_twin(result, args.save_twin)
-        print(f"saved the twin to {args.save_twin}/")
+    # An existing twin (--force) is locked through the run; a new one only while it is written.
+    existing = args.save_twin and (Path(args.save_twin) / "twin.json").is_file()
+    with locked(args.save_twin, on_wait=_waiting(args.save_twin)) if existing else contextlib.nullcontext():
+        result = _update(args, mode, nominal, data, library=args.library, diffusion_library=args.diffusion_library)
+        _report(args, result)
+        if args.save_twin:
+            save_twin(result, args.save_twin, replace=args.force)
+            print(f"saved the twin to {args.save_twin}/")
     return 0
+
+
+def _waiting(twin):
+    """The one line a command prints when another process holds the twin's lock."""
+    return lambda: print(f"dtwin-jax: waiting for twin '{twin}': another process is updating it", file=sys.stderr)
 
 
 def _update(args, mode, nominal, data, *, library, diffusion_library=None, previous=None, forget=1.0):
     common = dict(pip_threshold=args.pip_threshold, settings=_settings(args), seed=args.seed,
-                  progress=not args.quiet, previous=previous, forget=forget)
+                  progress=not args.quiet, previous=previous, forget=forget,
+                  allow_repeat=getattr(args, "allow_repeat", False))
     if mode == "output-only":
         if getattr(args, "refine", False):
             raise DataError("--refine needs input-output data (output error simulates the measured input)")
@@ -203,26 +219,28 @@ def _report(args, result) -> None:
 
 
 def _update_saved(args) -> int:
-    """Re-update a saved twin: its posterior (statistics times --forget) is the prior."""
+    """Re-update a saved twin: its posterior (statistics times --forget) is the prior. The
+    twin's lock is held from reading it to writing the update, so concurrent updates queue."""
     from dtwin_jax.io import load_measurements
-    from dtwin_jax.store import load_twin, save_twin
+    from dtwin_jax.store import check_target, load_twin, locked, save_twin
 
     _check_threshold(args.pip_threshold)
     if not 0.0 <= args.forget <= 1.0:
         raise DataError(f"--forget must be in [0, 1], got {args.forget:g}")
     target = args.out_twin or args.twin
-    _check_writable(target, folder=True)
+    check_target(target, force=True)  # a twin may be updated in place; a user's folder never
     if args.out:
         _check_writable(args.out)
-    previous = load_twin(args.twin)
-    data = load_measurements(args.data)
-    if previous.mode == "input-output" and "u" not in data:
-        raise DataError(f"the twin is input-output; '{args.data}' has no key 'u'")
-    result = _update(args, previous.mode, previous.nominal, data, library=previous.library,
-                     diffusion_library=previous.preprocessing.get("diffusion_library"),
-                     previous=previous, forget=args.forget)
-    _report(args, result)
-    save_twin(result, target)
+    with locked(args.twin, on_wait=_waiting(args.twin)):
+        previous = load_twin(args.twin)
+        data = load_measurements(args.data)
+        if previous.mode == "input-output" and "u" not in data:
+            raise DataError(f"the twin is input-output; '{args.data}' has no key 'u'")
+        result = _update(args, previous.mode, previous.nominal, data, library=previous.library,
+                         diffusion_library=previous.preprocessing.get("diffusion_library"),
+                         previous=previous, forget=args.forget)
+        _report(args, result)
+        save_twin(result, target)
     print(f"update {len(result.history)} of the twin saved to {target}/")
     return 0
 

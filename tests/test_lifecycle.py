@@ -73,8 +73,9 @@ def test_update_appends_history_and_uses_the_posterior_as_prior(saved, tmp_path)
     assert 0.55 < ratio < 0.85
     truth = systems.EXAMPLES["example1"]().identifiable()["x2"]["x1**3"]
     assert abs(second.equations[0].mean[k] - truth) < 0.01 * abs(truth)
-    # --forget 0 is a fresh update from the new window alone (history kept).
-    assert main(["update", str(tmp_path / "t2"), str(saved / "w2.npz"), "--forget", "0"] + SHORT) == 0
+    # --forget 0 is a fresh update from the new window alone (history kept; the window
+    # is already in it, hence --allow-repeat).
+    assert main(["update", str(tmp_path / "t2"), str(saved / "w2.npz"), "--forget", "0", "--allow-repeat"] + SHORT) == 0
     third = load_twin(tmp_path / "t2")
     assert len(third.history) == 3
     assert abs(third.equations[0].std[k] / first.equations[0].std[k] - 1) < 0.25

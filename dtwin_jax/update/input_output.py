@@ -25,7 +25,7 @@ from dtwin_jax.measurement import smooth
 from dtwin_jax.progress import Stages
 from dtwin_jax.systems import LinearSecondOrder, check_interpolation
 from dtwin_jax.targets import input_output_targets, smoothed_input_output_stats
-from dtwin_jax.update.lifecycle import check_previous, updated_history, with_previous
+from dtwin_jax.update.lifecycle import check_previous, check_repeat, updated_history, with_previous
 from dtwin_jax.update.output_error import refine_output_error
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 from dtwin_jax.update.sampling import _sample_equations, numpy_stats, posteriors, resolve_library
@@ -51,6 +51,7 @@ def update_input_output(
     progress: bool = False,
     previous: UpdateResult | None = None,
     forget: float = 1.0,
+    allow_repeat: bool = False,
     refine: bool = False,
 ) -> UpdateResult:
     """Discover the perturbation of ``nominal`` from input-output measurements.
@@ -65,7 +66,8 @@ def update_input_output(
     of :mod:`dtwin_jax.estimate`. ``library`` is a spec (formats.md) or a :class:`Library`.
     ``previous``: an earlier update of the same twin (same nominal model and library) whose
     posterior is the prior of this one (its statistics, times ``forget``, are added to the
-    new window's); the result's history continues the previous one. ``refine``: refine the
+    new window's); the result's history continues the previous one, and a window already in
+    it is refused unless ``allow_repeat`` (its data would count twice). ``refine``: refine the
     selected terms' coefficients by output error on the same data
     (:func:`dtwin_jax.update.refine_output_error`, from the denoised initial states, each
     state weighed by its smoothing residual): a sharper twin for long free runs.
@@ -79,6 +81,7 @@ def update_input_output(
         raise DataError("input-output update needs measured inputs 'u'")
     lib = resolve_library(library, nominal, nominal.n)
     check_previous(previous, "input-output", nominal, lib, forget)
+    check_repeat(previous, rec, allow_repeat)
     hw = auto_half_width(nominal, rec.dt, rec.t.size)
     every = tuple(range(nominal.m))
     partial = x_index != every or (rec.xdot is not None and xdot_index != every)

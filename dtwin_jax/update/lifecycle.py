@@ -1,9 +1,13 @@
 """A twin's lifecycle across updates: a re-update checks that it continues the previous one
 (same mode, nominal model and library), adds the previous update's sufficient statistics
 to the new data's (the previous posterior as the prior, old data discounted by ``forget``)
-and appends an entry to the history that the result carries."""
+and appends an entry to the history that the result carries. Each entry keeps the window's
+fingerprint (:func:`window_fingerprint`), so a window already in the history is refused
+(:func:`check_repeat`): its data would count twice."""
 
 from __future__ import annotations
+
+import hashlib
 
 import jax.numpy as jnp
 import numpy as np
@@ -14,7 +18,7 @@ from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library
 from dtwin_jax.systems import LinearSecondOrder
 
-__all__ = ["check_previous", "with_previous", "updated_history"]
+__all__ = ["check_previous", "check_repeat", "window_fingerprint", "with_previous", "updated_history"]
 
 
 def with_previous(stats: sampler.SuffStats, kind: str, previous, forget: float) -> sampler.SuffStats:
@@ -48,6 +52,34 @@ def check_previous(previous, mode: str, nominal: LinearSecondOrder, lib: Library
         raise DataError("re-update needs the previous update's nominal model")
 
 
+def window_fingerprint(rec: Records) -> str:
+    """SHA-256 (hex) of a window's ``t``, ``x``, ``u`` and ``xdot`` as float64 bytes with their
+    shapes (an absent array counts as such): equal for the same data read again."""
+    h = hashlib.sha256()
+    for name in ("t", "x", "u", "xdot"):
+        a = getattr(rec, name)
+        if a is None:
+            h.update(f"{name}:none;".encode())
+            continue
+        a = np.ascontiguousarray(a, dtype=np.float64)
+        h.update(f"{name}:{a.shape};".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def check_repeat(previous, rec: Records, allow_repeat: bool = False) -> None:
+    """Raise `DataError` when the window ``rec`` is already in ``previous``'s history (its
+    data would count twice in the prior), unless ``allow_repeat``."""
+    if previous is None or allow_repeat:
+        return
+    fp = window_fingerprint(rec)
+    for entry in previous.history:
+        if isinstance(entry, dict) and entry.get("window_sha256") == fp:
+            raise DataError(f"this window is already in the twin's history (update {entry.get('update')}, "
+                            f"fingerprint {fp[:12]}): its data would count twice; "
+                            "allow it with --allow-repeat (allow_repeat=True)")
+
+
 def updated_history(previous, mode: str, rec: Records, forget: float, equations, seconds: float) -> list[dict]:
     """The previous update's history plus an entry for this one (``seconds`` of wall time)."""
     from datetime import datetime, timezone
@@ -68,4 +100,5 @@ def updated_history(previous, mode: str, rec: Records, forget: float, equations,
         "seconds": round(seconds, 3),
         "equations": [e.equation() for e in equations],
         "dtwin_jax": __version__,
+        "window_sha256": window_fingerprint(rec),
     }]

@@ -22,7 +22,7 @@ from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_lib
 from dtwin_jax.progress import Stages
 from dtwin_jax.sampler import SuffStats
 from dtwin_jax.systems import LinearSecondOrder
-from dtwin_jax.update.lifecycle import check_previous, updated_history, with_previous
+from dtwin_jax.update.lifecycle import check_previous, check_repeat, updated_history, with_previous
 from dtwin_jax.update.output_only_stats import (
     brownian_variance,
     diffusion_statistics,
@@ -55,6 +55,7 @@ def update_output_only(
     progress: bool = False,
     previous: UpdateResult | None = None,
     forget: float = 1.0,
+    allow_repeat: bool = False,
 ) -> UpdateResult:
     """Discover drift perturbation and diffusion of ``nominal`` from measured states only.
 
@@ -63,8 +64,8 @@ def update_output_only(
     (drift, default :data:`OUTPUT_ONLY_LIBRARY`) and ``diffusion_library`` (default
     :data:`DIFFUSION_LIBRARY`) are specs (formats.md) or :class:`Library`. The result holds
     one ``drift`` equation per regressed state and one ``diffusion`` equation (the diagonal
-    ``Gamma_ii = (G G^T)_ii``, units of velocity^2 / s) per velocity. ``previous`` and
-    ``forget``: a re-update, as in :func:`update_input_output` (drift and diffusion).
+    ``Gamma_ii = (G G^T)_ii``, units of velocity^2 / s) per velocity. ``previous``,
+    ``forget`` and ``allow_repeat``: a re-update, as in :func:`update_input_output` (drift and diffusion).
     """
     start = time.perf_counter()
     rec = check_records(t, x, None, None, nominal)
@@ -73,6 +74,7 @@ def update_output_only(
     lib = output_only_library(library, nominal, OUTPUT_ONLY_LIBRARY)
     dlib = output_only_library(diffusion_library, nominal, DIFFUSION_LIBRARY)
     check_previous(previous, "output-only", nominal, lib, forget)
+    check_repeat(previous, rec, allow_repeat)
     if previous is not None and previous.preprocessing.get("diffusion_library") != dlib.spec:
         raise DataError(f"re-update needs the previous diffusion library '{previous.preprocessing.get('diffusion_library')}'")
     stages = Stages(progress, 5, "output-only update")
