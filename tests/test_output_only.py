@@ -143,7 +143,7 @@ def test_output_only_rejects_the_input_family():
         update_output_only(ex.system.nominal, t, np.zeros((100, 2)) + 0.1, library="poly:2,input")
 
 
-def test_cli_discovers_drift_and_diffusion_from_a_file_without_u(tmp_path):
+def test_cli_discovers_drift_and_diffusion_from_a_file_without_u(tmp_path, capsys):
     # The data, library and settings of test_example1_output_only_at_5_percent_noise: the
     # same compiled programs (the suite's compilation cache), and the CLI's default library.
     ex, t, x = _ensemble("example1")
@@ -152,7 +152,8 @@ def test_cli_discovers_drift_and_diffusion_from_a_file_without_u(tmp_path):
     write_nominal(tmp_path / "nominal.toml", ex.system.nominal)
     out = tmp_path / "result.json"
     code = main(["discover", str(data), "--nominal", str(tmp_path / "nominal.toml"),
-                 "--out", str(out), "--chains", "2", "--draws", "600", "--burn-in", "300", "--quiet"])
+                 "--out", str(out), "--chains", "2", "--draws", "600", "--burn-in", "300", "--quiet",
+                 "--save-twin", str(tmp_path / "twin")])
     assert code == 0
     doc = json.loads(out.read_text())
     assert doc["mode"] == "output-only"
@@ -161,6 +162,28 @@ def test_cli_discovers_drift_and_diffusion_from_a_file_without_u(tmp_path):
     diffusion = doc["equations"][1]
     assert [t["expr"] for t in diffusion["terms"]] == ["1"]
     assert abs(diffusion["terms"][0]["mean"] / 0.25 - 1) < 0.2
+    _crafted_diffusion_library_runs_no_code(tmp_path, capsys)
+
+
+def _crafted_diffusion_library_runs_no_code(tmp_path, capsys):
+    """The saved output-only twin with a diffusion_library that would run code if evaluated
+    (checksums recomputed): predict refuses it in one line and runs nothing."""
+    from test_security import payloads
+    from test_store import _edit_header, _rehash
+
+    marker, twin = tmp_path / "ran", tmp_path / "twin"
+    spec = f"poly:1,terms:{payloads(marker)[1]}"
+
+    def craft(head):
+        head["diffusion_library"] = head["preprocessing"]["diffusion_library"] = spec
+    _edit_header(twin, craft)
+    _rehash(twin)
+    np.savez(tmp_path / "new.npz", t=np.arange(100) * 1e-3, x0=np.zeros(2))
+    capsys.readouterr()
+    assert main(["predict", str(twin), "--input", str(tmp_path / "new.npz"), "--out", str(tmp_path / "p.npz")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("dtwin-jax: error: library term"), err
+    assert not marker.exists()
 
 
 def test_update_runs_the_two_drift_passes_as_output_only_drift_stats_does():

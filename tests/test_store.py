@@ -162,6 +162,26 @@ def test_tampered_twin_one_line_exit_2_nothing_written(saved, tmp_path, capsys, 
         assert not [p for p in tmp_path.rglob("*") if p.is_file() and p != secret and b"TOPSECRET" in p.read_bytes()]
 
 
+@pytest.mark.parametrize("spec", ["terms:{cmd}", "terms:x1**3+0*{cmd};x1;x2;u1", "poly:1,terms:sign({cmd})"])
+def test_a_crafted_library_in_a_twin_runs_no_code(saved, tmp_path, capsys, spec):
+    # The reviewer's routes: twin.json's library evaluated on predict and update (and written
+    # back by update, so it ran again on every later load). Checksums recomputed, so that the
+    # parser, not the manifest, is what refuses it.
+    from test_security import payloads
+
+    marker = tmp_path / "ran"
+    twin, out = _copy(saved, tmp_path), tmp_path / "p.npz"
+    _edit_header(twin, lambda h: h.update(library=spec.format(cmd=payloads(marker)[0])))
+    _rehash(twin)
+    for argv in (["predict", str(twin), "--input", str(saved / "new.npz"), "--out", str(out)],
+                 ["update", str(twin), str(saved / "w2.npz")] + TINY):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("dtwin-jax: error: "), err
+        assert "library" in err[0]
+    assert not marker.exists() and not out.exists()
+
+
 def test_user_files_survive_an_update_in_place(saved, tmp_path):
     twin = _copy(saved, tmp_path)
     (twin / "NOTES.txt").write_text("mine")
