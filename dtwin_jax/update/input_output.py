@@ -154,8 +154,8 @@ def update_input_output(
     except Exception as e:  # noqa: BLE001 - the Gibbs twin stands whatever failed; say why, in one line
         reason = (str(e).strip().splitlines() or [""])[0][:300]
         result = dataclasses.replace(result, checks={**checks, "refinement": {
-            "ok": False, "warnings": [f"refinement failed ({type(e).__name__}): {reason}; the twin is the Gibbs "
-                                      "posterior's, unrefined"]}})
+            "ok": False, "warnings": [f"failed ({type(e).__name__}): {reason}; the twin is the Gibbs posterior's, "
+                                      "unrefined"]}})
     preprocessing = {**result.preprocessing, "stage_seconds": dict(stages.seconds)}  # the refinement's too
     return dataclasses.replace(result, preprocessing=preprocessing, seconds=time.perf_counter() - start)
 
