@@ -111,6 +111,7 @@ def test_friction_twin_from_the_cli_predicts_25_s(friction_cli, capsys):
     seconds = time.perf_counter() - start
     print(f"CLI predict of the friction twin, 25 s at 1 kHz, 20 draws: {seconds:.1f} s")
     assert code == 0 and seconds < 30.0
+    assert "predict (draws)" in capsys.readouterr().err  # the progress bar (no --quiet)
     with np.load(tmp / "p.npz") as z:
         mean, lower, upper = z["mean"], z["lower"], z["upper"]
     assert mean.shape == (25000, 2) and np.all(np.isfinite(mean))

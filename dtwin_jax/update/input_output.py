@@ -134,7 +134,7 @@ def update_input_output(
             "input_interpolation": interpolation,
             "input_noise_std": None if noise_var is None else np.sqrt(noise_var).tolist(),
             "samples": int(R * N),
-            "state_range": state_range(xs),
+            "state_range": state_range(xs, previous),
             "effective_samples": None if n_eff is None else n_eff.tolist(),
             "stage_seconds": dict(stages.seconds),
         },

@@ -141,7 +141,7 @@ def _cost(residual, params, scale) -> float:
     unstable or too stiff for the solver's step budget)."""
     try:
         r = residual(params, scale)
-    except jax.errors.JaxRuntimeError:
+    except RuntimeError:  # XLA's, or equinox's out-of-steps error (EquinoxRuntimeError)
         return np.inf
     return float(r @ r)
 

@@ -155,7 +155,7 @@ def update_output_only(
             "diffusion_effective_samples": np.asarray(stats.n).tolist(),
             "records": int(R),
             "samples": int(R * N),
-            "state_range": state_range(rec.x),
+            "state_range": state_range(rec.x, previous),
             "stage_seconds": dict(stages.seconds),
         },
         checks=checks,
