@@ -99,6 +99,7 @@ def _parser() -> argparse.ArgumentParser:
     pr.add_argument("--draws", type=_positive_int, default=100, help="posterior draws simulated (default 100)")
     pr.add_argument("--seed", type=int, default=0, help="random seed: draws and Brownian paths (default 0)")
     pr.add_argument("--out", required=True, help="PREDICTION.npz: t, mean, lower, upper")
+    pr.add_argument("--quiet", action="store_true", help="no progress output")
 
     up = sub.add_parser("update", help="re-update a saved twin with a new measurement window")
     up.add_argument("twin", metavar="TWIN_DIR", help="a folder written by discover --save-twin")
@@ -247,11 +248,13 @@ def _update_saved(args) -> int:
 
 def _predict(args) -> int:
     """Posterior-predictive simulation of a saved twin: PREDICTION.npz with t, mean, lower, upper."""
+    import warnings
+
     import jax
     import numpy as np
 
     from dtwin_jax.io import atomic_path, load_prediction_input
-    from dtwin_jax.prediction import posterior_twins, predict
+    from dtwin_jax.prediction import PredictionWarning, posterior_twins, predict
     from dtwin_jax.store import load_twin
 
     _check_writable(args.out)
@@ -259,7 +262,16 @@ def _predict(args) -> int:
     new = load_prediction_input(args.input, result.nominal, needs_input=result.mode == "input-output")
     key_draws, key_paths = jax.random.split(jax.random.key(args.seed))
     twins = posterior_twins(result, args.draws, key_draws)
-    out = predict(twins, new["x0"], new["t"], new.get("u"), key=key_paths)
+    with warnings.catch_warnings():
+        # PredictionWarning (a few draws dropped) is printed below as one line, as out["warnings"].
+        warnings.simplefilter("ignore", PredictionWarning)
+        try:
+            out = predict(twins, new["x0"], new["t"], new.get("u"), key=key_paths, progress=not args.quiet)
+        except (RuntimeError, jax.errors.JaxRuntimeError) as e:  # no traceback from a solver, whatever it hit
+            raise DataError(f"the prediction failed ({type(e).__name__}): "
+                            f"{(str(e).strip().splitlines() or [''])[0][:300]}") from None
+    for w in out["warnings"]:
+        print(f"dtwin-jax: warning: {w}", file=sys.stderr)
     arrays = {k: np.asarray(out[k]) for k in ("t", "mean", "lower", "upper")}
     if not all(np.all(np.isfinite(a)) for a in arrays.values()):
         raise DataError("the prediction diverged (non-finite states): the twin is unstable under this input")

@@ -9,7 +9,7 @@ import numpy as np
 from dtwin_jax.errors import DataError
 from dtwin_jax.systems import LinearSecondOrder
 
-__all__ = ["Records", "check_records"]
+__all__ = ["Records", "check_records", "state_range"]
 
 _MIN_SAMPLES = 16
 
@@ -79,3 +79,15 @@ def check_records(
         if xdot.shape[0] != R:
             raise DataError(f"'xdot' has {xdot.shape[0]} records but 'x' has {R}")
     return Records(t, x, u, xdot)
+
+
+def state_range(x, previous=None) -> list[list[float]]:
+    """`[[lo, hi], ...]`, one per state: the smallest and largest value of `x (..., m)`, and
+    of the `previous` update's range when given (a re-update's twin has seen both), saved
+    with the twin to bound its predictions (:func:`dtwin_jax.prediction.divergence_bounds`)."""
+    x = np.asarray(x, dtype=float).reshape(-1, np.shape(x)[-1])
+    lo, hi = np.nanmin(x, axis=0), np.nanmax(x, axis=0)
+    old = None if previous is None else previous.preprocessing.get("state_range")
+    if old is not None and np.shape(old) == (x.shape[1], 2):
+        lo, hi = np.minimum(lo, np.asarray(old)[:, 0]), np.maximum(hi, np.asarray(old)[:, 1])
+    return np.stack([lo, hi], axis=1).tolist()

@@ -11,6 +11,9 @@ every state.
 
 from __future__ import annotations
 
+import math
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -22,7 +25,25 @@ from dtwin_jax.library import Library, parse_library
 from dtwin_jax.systems import LinearSecondOrder
 
 __all__ = ["UpdatedTwin", "posterior_twins", "predict", "simulation_error", "with_model_error", "effective_stiffness",
-           "degradation_forecast"]
+           "degradation_forecast", "divergence_bounds", "fixed_substeps", "is_nonsmooth", "PredictionWarning",
+           "DIVERGENCE_FACTOR", "MAX_FAILED"]
+
+# A draw has diverged when a state is farther from the centre of its training range than
+# this many times the range's half-width (or than this many times its initial offset).
+DIVERGENCE_FACTOR = 100.0
+# Without a training range: this many times the scale of the initial state and of the
+# nominal model's static response to the input.
+FALLBACK_FACTOR = 1e6
+# predict drops (with a warning) at most this fraction of draws that diverge or fail;
+# more and it raises.
+MAX_FAILED = 0.05
+# Fixed steps of a non-smooth twin: at most this many radians of its fastest nominal mode
+# per step, and at least MIN_SUBSTEPS steps per sample.
+STEP_RADIANS, MIN_SUBSTEPS, MAX_SUBSTEPS = 0.05, 4, 256
+
+
+class PredictionWarning(UserWarning):
+    """Some posterior draws diverged or failed and were dropped from a prediction."""
 
 
 class UpdatedTwin(eqx.Module):
@@ -34,7 +55,9 @@ class UpdatedTwin(eqx.Module):
     of every velocity, or are None for an input-output twin. Arrays may carry a leading
     batch axis (posterior draws): vmap over it with `eqx.filter_vmap`. `interpolation`:
     how the input behaves between samples (:func:`systems.check_interpolation`), as in the
-    data the twin was updated from.
+    data the twin was updated from. `state_range (m, 2)`: the smallest and largest value of
+    every state in that data (`preprocessing["state_range"]`), which bounds a prediction
+    (:func:`divergence_bounds`), or None.
     """
 
     nominal: LinearSecondOrder
@@ -44,6 +67,7 @@ class UpdatedTwin(eqx.Module):
     diffusion_library: Library | None = eqx.field(static=True, default=None)
     diffusion_coefficients: jax.Array | None = None
     interpolation: str = eqx.field(static=True, default="held")
+    state_range: jax.Array | None = None
 
     def perturbation(self, x, u):
         """Discovered extra rate `(m,)` at one sample `x (m,)`, `u (n,)`."""
@@ -119,7 +143,7 @@ def posterior_twins(result, num_draws: int = 100, key=None) -> UpdatedTwin:
     dcoef = np.stack([e.theta[c, k] for e in diffusion], axis=1)  # (S, d, Kd)
     assert [e.state for e in diffusion] == [names[v] for v in result.nominal.velocity_index]
     return UpdatedTwin(twin.nominal, twin.library, twin.regressed, jnp.asarray(coef), *diffusion_terms(result, dcoef),
-                       twin.interpolation)
+                       twin.interpolation, twin.state_range)
 
 
 def refined_coefficients(shape, index, values) -> np.ndarray:
@@ -147,42 +171,183 @@ def _one(twins: UpdatedTwin, coef, dcoef) -> UpdatedTwin:
     return eqx.tree_at(lambda t: (t.coefficients, t.diffusion_coefficients), twins, (coef, dcoef))
 
 
+def is_nonsmooth(twins: UpdatedTwin) -> bool:
+    """True when a term of a non-smooth family (:data:`systems.NONSMOOTH_FAMILIES`: `sign`,
+    `Abs`, `x*Abs`) is selected in some draw of `twins` (any such term in the library when
+    the coefficients are traced)."""
+    families = [f for f, idx in twins.library.blocks for _ in idx]
+    rough = np.array([f in systems.NONSMOOTH_FAMILIES for f in families])
+    if not rough.any():
+        return False
+    try:
+        coef = np.asarray(twins.coefficients)
+    except jax.errors.TracerArrayConversionError:
+        return True
+    used = np.any(coef.reshape(-1, coef.shape[-1]) != 0, axis=0)
+    return bool(np.any(used & rough))
+
+
+def fixed_substeps(nominal: LinearSecondOrder, t) -> int:
+    """Fixed steps per sample interval of `t (N,)` s for a non-smooth twin: at most
+    :data:`STEP_RADIANS` of the nominal model's fastest mode per step, at least
+    :data:`MIN_SUBSTEPS` (8 when the model or `t` is traced)."""
+    try:
+        M, C, K = (np.asarray(a) for a in (nominal.M, nominal.C, nominal.K))
+        dt = float(np.max(np.diff(np.asarray(t))))
+    except jax.errors.TracerArrayConversionError:
+        return 8
+    d = M.shape[0]
+    A = np.block([[np.zeros((d, d)), np.eye(d)], [-np.linalg.solve(M, K), -np.linalg.solve(M, C)]])
+    rho = float(np.max(np.abs(np.linalg.eigvals(A))))
+    return int(min(max(math.ceil(rho * dt / STEP_RADIANS), MIN_SUBSTEPS), MAX_SUBSTEPS))
+
+
+def divergence_bounds(twins: UpdatedTwin, x0, u=None) -> tuple[jax.Array, jax.Array]:
+    """`lower, upper (m,)`: the box a prediction from `x0 (m,)` under `u (N, n)` (or None)
+    must stay in; a draw that leaves it has diverged.
+
+    With a training range (`twins.state_range`, centre `c`, half-width `w`): `c +- 100
+    max(w, |x0 - c|)` (:data:`DIVERGENCE_FACTOR`), unbounded for a state that never moved.
+    Without: `+- 1e6` (:data:`FALLBACK_FACTOR`) times the scale of every state, the larger
+    of `|x0|` and the nominal model's static response to the largest input (displacements;
+    times the fastest nominal frequency for velocities); unbounded where that scale is 0.
+    Jittable."""
+    x0 = jnp.asarray(x0, dtype=float)
+    if twins.state_range is not None:
+        r = jnp.asarray(twins.state_range, dtype=float)
+        centre, half = r.mean(axis=1), (r[:, 1] - r[:, 0]) / 2
+        half = jnp.where(half > 0, DIVERGENCE_FACTOR * jnp.maximum(half, jnp.abs(x0 - centre)), jnp.inf)
+        return centre - half, centre + half
+    nominal = twins.nominal
+    d = nominal.d
+    scale = jnp.abs(x0)
+    if u is not None:
+        umax = jnp.max(jnp.abs(jnp.asarray(u, dtype=float)).reshape(-1, nominal.n), axis=0)
+        static = jnp.abs(jnp.linalg.pinv(nominal.K) @ nominal.B) @ umax
+        omega = jnp.sqrt(jnp.linalg.norm(jnp.linalg.solve(nominal.M, nominal.K)))
+        scale = scale.at[:d].max(static).at[d : 2 * d].max(omega * static)
+    half = jnp.where(scale > 0, FALLBACK_FACTOR * scale, jnp.inf)
+    return -half, half
+
+
 @eqx.filter_jit
-def _paths(twins: UpdatedTwin, x0, t, u, keys):
+def _paths(twins: UpdatedTwin, x0, t, u, keys, lower, upper, substeps):
+    """`paths (S, N, m)`, `status (S,)` and `stop_time (S,)` of every draw."""
     if twins.stochastic:
-        run = lambda c, dc, k: systems.simulate_sde(_one(twins, c, dc), x0, t, k)
+        run = lambda c, dc, k: systems.simulate_sde_checked(_one(twins, c, dc), x0, t, k, lower, upper)
         return jax.vmap(run)(twins.coefficients, twins.diffusion_coefficients, keys)
-    run = lambda c, uu: systems.simulate(
-        _one(twins, c, None), x0, t, uu, rtol=1e-8, atol=1e-10, interpolation=twins.interpolation
-    )[0]
+    run = lambda c, uu: systems.simulate_checked(
+        _one(twins, c, None), x0, t, uu, lower, upper, rtol=1e-8, atol=1e-10, interpolation=twins.interpolation,
+        substeps=substeps,
+    )
     return jax.vmap(run, (0, 0 if u.ndim == 3 else None))(twins.coefficients, u)
 
 
-def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = False) -> dict:
+def _summary(paths, status) -> dict:
+    """Mean and 95% band over the draws that finished (failed draws' paths become NaN)."""
+    ok = status == systems.OK
+    paths = jnp.where(ok[:, None, None], paths, jnp.nan)
+    lower, upper = jnp.nanquantile(paths, jnp.array([0.025, 0.975]), axis=0)
+    return {"mean": jnp.nanmean(paths, axis=0), "lower": lower, "upper": upper, "paths": paths}
+
+
+def _chunks(S: int, progress: bool) -> int:
+    """Draws per compiled call: all at once, or about a tenth each for a progress bar."""
+    return S if not progress else max(1, math.ceil(S / 10))
+
+
+def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = False, substeps: int | None = None,
+            progress: bool = False, max_failed: float = MAX_FAILED) -> dict:
     """Posterior-predictive simulation of stacked twins (:func:`posterior_twins`).
 
-    `x0 (m,)`, `t (N,)` s; `u (N, n)` the input of an input-output twin (held over each
-    step or interpolated linearly, as `twins.interpolation`), or `(S, N, n)` one input per draw (future loads that are themselves uncertain). An output-only twin is driven by Brownian forcing: an independent path per draw
-    from `key` (the band holds the process noise too), or with `shared_path` one path for
-    all (the band holds the parameter uncertainty only; the truth driven by
-    `systems.simulate_sde(..., key)` sees the same path). Returns `t`, `mean`, `lower`,
-    `upper` (2.5% and 97.5% quantiles) `(N, m)`, and the `paths (S, N, m)`.
+    **Arguments:**
+
+    - `x0 (m,)`, `t (N,)` s; `u (N, n)` the input of an input-output twin (held over each
+      step or interpolated linearly, as `twins.interpolation`), or `(S, N, n)` one input per
+      draw (future loads that are themselves uncertain).
+    - An output-only twin is driven by Brownian forcing: an independent path per draw from
+      `key` (the band holds the process noise too), or with `shared_path` one path for all
+      (the band holds the parameter uncertainty only; the truth driven by
+      `systems.simulate_sde(..., key)` sees the same path).
+    - `substeps`: fixed solver steps per sample interval for a twin with a non-smooth term
+      (:func:`is_nonsmooth`: `sign`, `Abs`), which an adaptive solver chatters on; default
+      :func:`fixed_substeps`. Smooth input-output twins take adaptive Dopri8.
+    - `progress`: a tqdm bar on standard error, advanced by chunks of about a tenth of the
+      draws (each chunk one call of the same compiled program).
+    - `max_failed`: the largest fraction of draws that may diverge or fail (dropped from
+      mean and band with a :class:`PredictionWarning`); more raise a one-line `DataError`
+      saying when and in how many draws.
+
+    A draw diverges when a state leaves :func:`divergence_bounds` (100x the training range)
+    or becomes non-finite: a diffrax `Event` ends its solve there, so an unstable twin is
+    reported in seconds; running out of solver steps is reported the same way.
+
+    **Returns:** `t`, `mean`, `lower`, `upper` (2.5% and 97.5% quantiles) `(N, m)` over
+    the draws that finished, `paths (S, N, m)` (NaN for a failed draw), `status (S,)`
+    (:data:`systems.OK`, `DIVERGED`, `MAX_STEPS`, `FAILED`), `stop_time (S,)` s, and
+    `warnings` (list of str). Jittable with `progress=False`: under `jax.jit` nothing is
+    raised or warned, and `status` says which draws failed.
     """
+    from dtwin_jax.progress import Bar, tick
+
     t = jnp.asarray(t, dtype=float)
     x0 = jnp.asarray(x0, dtype=float)
     S = jnp.shape(twins.coefficients)[0]
     if twins.stochastic:
         key = jax.random.key(0) if key is None else key
         keys = jnp.stack([key] * S) if shared_path else jax.random.split(key, S)
-        paths = _paths(twins, x0, t, None, keys)
+        u = None
     else:
         if u is None:
             raise DataError("an input-output twin needs the input u (N, n) to predict")
         u = jnp.asarray(u, dtype=float)
         u = u.reshape((S, t.shape[0], -1) if u.ndim == 3 else (t.shape[0], -1))
-        paths = _paths(twins, x0, t, u, None)
-    lower, upper = jnp.quantile(paths, jnp.array([0.025, 0.975]), axis=0)
-    return {"t": t, "mean": paths.mean(axis=0), "lower": lower, "upper": upper, "paths": paths}
+        keys = None
+    lower, upper = divergence_bounds(twins, x0, u)
+    if substeps is None and not twins.stochastic and is_nonsmooth(twins):
+        substeps = fixed_substeps(twins.nominal, t)
+    size = _chunks(S, progress)
+    if size >= S:
+        paths, status, stop = _paths(twins, x0, t, u, keys, lower, upper, substeps)
+    else:
+        parts = []
+        with Bar(True, S, "predict (draws)"):
+            for start in range(0, S, size):
+                # Every chunk the same size (the last padded with draw 0): one compilation.
+                idx = np.minimum(np.arange(start, start + size), S - 1)
+                dcoef = twins.diffusion_coefficients[idx] if twins.stochastic else None
+                uc = u[idx] if u is not None and u.ndim == 3 else u
+                part = jax.block_until_ready(_paths(_one(twins, twins.coefficients[idx], dcoef), x0, t, uc,
+                                                    None if keys is None else keys[idx], lower, upper, substeps))
+                parts.append(jax.tree.map(lambda a: a[: min(size, S - start)], part))
+                tick(min(size, S - start))
+        paths, status, stop = (jnp.concatenate(p) for p in zip(*parts))
+    out = {"t": t, **_summary(paths, status), "status": status, "stop_time": stop, "warnings": []}
+    if not isinstance(status, jax.core.Tracer):
+        message = failure_message(np.asarray(status), np.asarray(stop))
+        if message and np.sum(np.asarray(status) != systems.OK) > max_failed * S:
+            raise DataError(f"{message}: the twin is unstable under this input (or far outside the range it was "
+                            "updated on)")
+        if message:
+            message += ": those draws are left out of the mean and band"
+            warnings.warn(message, PredictionWarning, stacklevel=2)
+            out["warnings"] = [message]
+    return out
+
+
+def failure_message(status: np.ndarray, stop_time: np.ndarray) -> str:
+    """One line on the draws of a prediction that did not finish (`status (S,)`,
+    `stop_time (S,)` s from :func:`predict`), or "" when all did."""
+    S, parts = status.size, []
+    for code, what in ((systems.DIVERGED, "the twin diverged at t = {t:.4g} s in {n} of {S} posterior draws (a state "
+                                          f"left {DIVERGENCE_FACTOR:g}x its training range, or became non-finite)"),
+                       (systems.MAX_STEPS, "the solver ran out of steps at t = {t:.4g} s in {n} of {S} posterior draws "
+                                           "(a very stiff or chattering twin)"),
+                       (systems.FAILED, "the solver failed at t = {t:.4g} s in {n} of {S} posterior draws")):
+        hit = status == code
+        if hit.any():
+            parts.append(what.format(t=float(np.min(stop_time[hit])), n=int(hit.sum()), S=S))
+    return "; ".join(parts)
 
 
 def simulation_error(predicted, measured) -> dict:

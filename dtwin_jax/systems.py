@@ -22,7 +22,11 @@ __all__ = [
     "LinearSecondOrder",
     "PerturbedSystem",
     "simulate",
+    "simulate_checked",
+    "fixed_grid",
+    "NONSMOOTH_FAMILIES",
     "diffusion_matrix",
+    "simulate_sde_checked",
     "simulate_sde",
     "Example",
     "example1",
@@ -199,42 +203,20 @@ def upsample(u, factor: int = UPSAMPLE):
     return fine[: (N - 1) * factor + 1]
 
 
-@eqx.filter_jit
-def simulate(
-    system: PerturbedSystem | LinearSecondOrder,
-    x0: Float[Array, " m"],
-    t: Float[Array, " N"],
-    u: Float[Array, "N n"],
-    *,
-    rtol: float = 1e-10,
-    atol: float = 1e-12,
-    max_steps: int | None = None,
-    interpolation: str | None = None,
-    adjoint: diffrax.AbstractAdjoint | None = None,
-) -> tuple[Float[Array, "N m"], Float[Array, "N m"]]:
-    """Integrate `dX/dt = system.rate(X, u(t))` under the sampled input `u`.
+NONSMOOTH_FAMILIES = ("sign", "abs", "xabs")  # library families with a jump or a kink
 
-    `interpolation="held"`: `u[i]` holds on `[t_i, t_{i+1})`; `"linear"`: `u` is
-    interpolated linearly between samples; `"bandlimited"`: reconstructed by
-    :func:`upsample`. None: the system's own (an updated twin's, from its data), else held.
-    Held and linear: adaptive Dopri8 (`rtol`, `atol`), every `t_i` a jump time (of the input
-    or its slope) that no step crosses. Band-limited: fixed Tsit5 steps on the 8x fine grid
-    (`rtol`, `atol`, `max_steps` unused).
 
-    Returns `x (N, m)` at the times `t (N,)` and `xdot (N, m)`, where
-    `xdot[i] = system.rate(x[i], u[i])` is what an ideal accelerometer reads.
-    `max_steps` defaults to `16 N + 4096`. `adjoint`: diffrax's (default
-    `RecursiveCheckpointAdjoint`, reverse mode); `diffrax.ForwardMode()` for `jax.jacfwd`.
-    """
-    float_ = jnp.result_type(float)
-    t, x0, u = (jnp.asarray(a, dtype=float_) for a in (t, x0, u))
-    if t.ndim != 1 or t.shape[0] < 2:
-        raise DataError(f"time grid t must have shape (N,) with N >= 2, got {t.shape}")
-    N = t.shape[0]
-    if u.ndim != 2 or u.shape[0] != N:
-        raise DataError(f"input u must have shape ({N}, n), got {u.shape}")
-    if x0.ndim != 1:
-        raise DataError(f"initial state x0 must have shape (m,), got {x0.shape}")
+def fixed_grid(t: Float[Array, " N"], substeps: int) -> Float[Array, " M"]:
+    """`t (N,)` with `substeps` equal steps in every sample interval, `((N - 1) substeps + 1,)`;
+    every `t_i` is in it exactly (so a held input's jumps are step ends)."""
+    frac = jnp.arange(substeps, dtype=t.dtype) / substeps
+    inner = (t[:-1, None] + (t[1:] - t[:-1])[:, None] * frac).ravel()
+    return jnp.concatenate([inner, t[-1:]])
+
+
+def _solve(system, x0, t, u, *, rtol, atol, max_steps, interpolation, adjoint, substeps, event, throw,
+           save_end):
+    """The diffrax solve behind :func:`simulate` and :func:`simulate_checked` (arguments as there)."""
     if interpolation is None:
         interpolation = getattr(system, "interpolation", "held")
     check_interpolation(interpolation)
@@ -248,14 +230,20 @@ def simulate(
         tf = jnp.linspace(t[0], t[-1], uf.shape[0])
         args = (system, tf, uf)
         solver, controller, max_steps = diffrax.Tsit5(), diffrax.StepTo(ts=tf), tf.shape[0] - 1
+    elif substeps is not None:
+        # Fixed steps for a non-smooth rate (sign(v) chatters an adaptive solver to a halt).
+        # Bosh3: no stage at a step's end enters its solution (the end's rate is the next
+        # step's first, FSAL), so every stage sees the held input of its own interval.
+        grid = fixed_grid(t, int(substeps))
+        solver, controller, max_steps = diffrax.Bosh3(), diffrax.StepTo(ts=grid), grid.shape[0] - 1
     else:
         if max_steps is None:  # every input sample is a step end, plus room between them
-            max_steps = 16 * N + 4096
+            max_steps = 16 * t.shape[0] + 4096
         # The ends are not jumps inside [t_0, t_{N-1}]; passing them only adds tiny steps.
-        jump_ts = t[1:-1] if N > 2 else None
+        jump_ts = t[1:-1] if t.shape[0] > 2 else None
         controller = diffrax.ClipStepSizeController(diffrax.PIDController(rtol=rtol, atol=atol), jump_ts=jump_ts)
         solver = diffrax.Dopri8()
-    sol = diffrax.diffeqsolve(
+    return diffrax.diffeqsolve(
         diffrax.ODETerm(_held_field if interpolation == "held" else _linear_field),
         solver,
         t0=t[0],
@@ -263,14 +251,114 @@ def simulate(
         dt0=None,
         y0=x0,
         args=args,
-        saveat=diffrax.SaveAt(ts=t),
+        saveat=diffrax.SaveAt(ts=t, t1=save_end),
         stepsize_controller=controller,
         max_steps=max_steps,
         adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
+        event=event,
+        throw=throw,
     )
+
+
+def _check_shapes(t, x0, u):
+    float_ = jnp.result_type(float)
+    t, x0, u = (jnp.asarray(a, dtype=float_) for a in (t, x0, u))
+    if t.ndim != 1 or t.shape[0] < 2:
+        raise DataError(f"time grid t must have shape (N,) with N >= 2, got {t.shape}")
+    N = t.shape[0]
+    if u.ndim != 2 or u.shape[0] != N:
+        raise DataError(f"input u must have shape ({N}, n), got {u.shape}")
+    if x0.ndim != 1:
+        raise DataError(f"initial state x0 must have shape (m,), got {x0.shape}")
+    return t, x0, u
+
+
+@eqx.filter_jit
+def simulate(
+    system: PerturbedSystem | LinearSecondOrder,
+    x0: Float[Array, " m"],
+    t: Float[Array, " N"],
+    u: Float[Array, "N n"],
+    *,
+    rtol: float = 1e-10,
+    atol: float = 1e-12,
+    max_steps: int | None = None,
+    interpolation: str | None = None,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    substeps: int | None = None,
+) -> tuple[Float[Array, "N m"], Float[Array, "N m"]]:
+    """Integrate `dX/dt = system.rate(X, u(t))` under the sampled input `u`.
+
+    `interpolation="held"`: `u[i]` holds on `[t_i, t_{i+1})`; `"linear"`: `u` is
+    interpolated linearly between samples; `"bandlimited"`: reconstructed by
+    :func:`upsample`. None: the system's own (an updated twin's, from its data), else held.
+    Held and linear: adaptive Dopri8 (`rtol`, `atol`), every `t_i` a jump time (of the input
+    or its slope) that no step crosses; or, with `substeps`, fixed Bosh3 steps, `substeps`
+    per sample interval (for a non-smooth rate such as Coulomb friction `sign(v)`, on which
+    an adaptive solver chatters). Band-limited: fixed Tsit5 steps on the 8x fine grid
+    (`rtol`, `atol`, `max_steps` unused).
+
+    Returns `x (N, m)` at the times `t (N,)` and `xdot (N, m)`, where
+    `xdot[i] = system.rate(x[i], u[i])` is what an ideal accelerometer reads.
+    `max_steps` defaults to `16 N + 4096`. `adjoint`: diffrax's (default
+    `RecursiveCheckpointAdjoint`, reverse mode); `diffrax.ForwardMode()` for `jax.jacfwd`.
+    """
+    t, x0, u = _check_shapes(t, x0, u)
+    sol = _solve(system, x0, t, u, rtol=rtol, atol=atol, max_steps=max_steps, interpolation=interpolation,
+                 adjoint=adjoint, substeps=substeps, event=None, throw=True, save_end=False)
     x = sol.ys
     xdot = jax.vmap(system.rate)(x, u)
     return x, xdot
+
+
+# simulate_checked's status codes (per solve): finished, left its bounds or non-finite,
+# out of solver steps, any other solver failure.
+OK, DIVERGED, MAX_STEPS, FAILED = 0, 1, 2, 3
+
+
+def _status(sol) -> Array:
+    return jnp.where(sol.result == diffrax.RESULTS.successful, OK,
+                     jnp.where(sol.result == diffrax.RESULTS.event_occurred, DIVERGED,
+                               jnp.where(sol.result == diffrax.RESULTS.max_steps_reached, MAX_STEPS, FAILED)))
+
+
+def _outside(s, y, args, *, lower, upper, **kwargs):
+    # A boolean event: the solve ends on the first step whose state leaves the box.
+    return jnp.any(~jnp.isfinite(y) | (y < lower) | (y > upper))
+
+
+def simulate_checked(
+    system: PerturbedSystem | LinearSecondOrder,
+    x0: Float[Array, " m"],
+    t: Float[Array, " N"],
+    u: Float[Array, "N n"],
+    lower: Float[Array, " m"],
+    upper: Float[Array, " m"],
+    *,
+    rtol: float = 1e-10,
+    atol: float = 1e-12,
+    max_steps: int | None = None,
+    interpolation: str | None = None,
+    substeps: int | None = None,
+) -> tuple[Float[Array, "N m"], Array, Array]:
+    """:func:`simulate` that stops instead of failing: a state outside `[lower, upper] (m,)`
+    or non-finite ends the solve (a diffrax `Event`), and running out of solver steps
+    returns rather than raises (`throw=False`). Jittable and vmappable.
+
+    **Returns:** `x (N, m)` (inf after the stop), `status` (:data:`OK`, :data:`DIVERGED`,
+    :data:`MAX_STEPS` or :data:`FAILED`) and `stop_time`, the time (s) the solve reached.
+    """
+    t, x0, u = _check_shapes(t, x0, u)
+    event = diffrax.Event(lambda s, y, args, **kw: _outside(s, y, args, lower=lower, upper=upper))
+    sol = _solve(system, x0, t, u, rtol=rtol, atol=atol, max_steps=max_steps, interpolation=interpolation,
+                 adjoint=diffrax.RecursiveCheckpointAdjoint(), substeps=substeps, event=event, throw=False,
+                 save_end=True)
+    # On a stop diffrax compacts the end time right after the last time saved, inf after it.
+    N = t.shape[0]
+    ys, ts = sol.ys, sol.ts
+    stopped = ts[:N] != t
+    x = jnp.where(stopped[:, None], jnp.inf, ys[:N])
+    return x, _status(sol), jnp.max(jnp.where(jnp.isfinite(ts), ts, t[0]))
 
 
 def diffusion_matrix(nominal: LinearSecondOrder) -> Float[Array, "m n"]:
@@ -288,7 +376,8 @@ def _sde_drift(s, y, system):
 def _sde_diffusion(s, y, system):
     # An updated twin carries its discovered, possibly state-dependent, diffusion.
     if hasattr(system, "diffusion"):
-        return system.diffusion(y)
+        # A constant one is evaluated off y: ShARK checks (by a JVP) that it ignores y.
+        return system.diffusion(jnp.zeros(y.shape, y.dtype) if system.additive_noise else y)
     return diffusion_matrix(system_nominal(system))
 
 
@@ -297,27 +386,7 @@ def system_nominal(system: PerturbedSystem | LinearSecondOrder) -> LinearSecondO
     return system if isinstance(system, LinearSecondOrder) else system.nominal
 
 
-@eqx.filter_jit
-def simulate_sde(
-    system: PerturbedSystem | LinearSecondOrder,
-    x0: Float[Array, " m"],
-    t: Float[Array, " N"],
-    key: Array,
-    *,
-    substeps: int = 4,
-) -> Float[Array, "N m"]:
-    """Sample the Ito SDE `dX = (f(X) + h(X)) dt + G dB` on a uniform grid `t (N,)` s.
-
-    The force is `B dB` with `B` the nominal input matrix and `B (n,)` a unit-intensity
-    Brownian motion, so `G = diffusion_matrix(nominal)` and the diffusion of velocity `i` is
-    `Gamma_ii = (G G^T)_ii`. Integrated with ShARK (strong order 1.5 for additive noise)
-    at `dt / substeps`; Euler-Maruyama at 1 ms doubles the variance of these oscillators.
-    Vmap over `key` for an ensemble. Returns `x (N, m)` with `x[0] = x0`.
-    """
-    float_ = jnp.result_type(float)
-    t, x0 = jnp.asarray(t, float_), jnp.asarray(x0, float_)
-    if t.ndim != 1 or t.shape[0] < 2:
-        raise DataError(f"time grid t must have shape (N,) with N >= 2, got {t.shape}")
+def _solve_sde(system, x0, t, key, substeps, event, throw):
     nominal = system_nominal(system)
     N = t.shape[0]
     fine = jnp.linspace(t[0], t[-1], (N - 1) * substeps + 1)
@@ -341,8 +410,58 @@ def simulate_sde(
         stepsize_controller=diffrax.StepTo(ts=fine),
         max_steps=(N - 1) * substeps,
         adjoint=diffrax.ForwardMode(),  # UnsafeBrownianPath cannot be checkpointed
+        event=event,
+        throw=throw,
     )
-    return jnp.concatenate([x0[None], sol.ys[substeps - 1 :: substeps]])
+    return sol, jnp.concatenate([x0[None], sol.ys[substeps - 1 :: substeps]])
+
+
+def _check_sde(t, x0):
+    float_ = jnp.result_type(float)
+    t, x0 = jnp.asarray(t, float_), jnp.asarray(x0, float_)
+    if t.ndim != 1 or t.shape[0] < 2:
+        raise DataError(f"time grid t must have shape (N,) with N >= 2, got {t.shape}")
+    return t, x0
+
+
+@eqx.filter_jit
+def simulate_sde(
+    system: PerturbedSystem | LinearSecondOrder,
+    x0: Float[Array, " m"],
+    t: Float[Array, " N"],
+    key: Array,
+    *,
+    substeps: int = 4,
+) -> Float[Array, "N m"]:
+    """Sample the Ito SDE `dX = (f(X) + h(X)) dt + G dB` on a uniform grid `t (N,)` s.
+
+    The force is `B dB` with `B` the nominal input matrix and `B (n,)` a unit-intensity
+    Brownian motion, so `G = diffusion_matrix(nominal)` and the diffusion of velocity `i` is
+    `Gamma_ii = (G G^T)_ii`. Integrated with ShARK (strong order 1.5 for additive noise)
+    at `dt / substeps`; Euler-Maruyama at 1 ms doubles the variance of these oscillators.
+    Vmap over `key` for an ensemble. Returns `x (N, m)` with `x[0] = x0`.
+    """
+    t, x0 = _check_sde(t, x0)
+    return _solve_sde(system, x0, t, key, substeps, None, True)[1]
+
+
+def simulate_sde_checked(
+    system: PerturbedSystem | LinearSecondOrder,
+    x0: Float[Array, " m"],
+    t: Float[Array, " N"],
+    key: Array,
+    lower: Float[Array, " m"],
+    upper: Float[Array, " m"],
+    *,
+    substeps: int = 4,
+) -> tuple[Float[Array, "N m"], Array, Array]:
+    """:func:`simulate_sde` that stops when a state leaves `[lower, upper] (m,)` or is
+    non-finite, as :func:`simulate_checked`: returns `x (N, m)` (inf after the stop),
+    `status` and `stop_time` (s)."""
+    t, x0 = _check_sde(t, x0)
+    event = diffrax.Event(lambda s, y, args, **kw: _outside(s, y, args, lower=lower, upper=upper))
+    sol, x = _solve_sde(system, x0, t, key, substeps, event, False)
+    return x, _status(sol), jnp.max(jnp.where(jnp.isfinite(sol.ts), sol.ts, t[0]))
 
 
 # ---------------------------------------------------------------------------

@@ -16,7 +16,7 @@ import numpy as np
 
 from dtwin_jax import sampler
 from dtwin_jax.checks import residual_checks
-from dtwin_jax.data import Records, check_records
+from dtwin_jax.data import Records, check_records, state_range
 from dtwin_jax.denoise import auto_half_width, kinematic_smoother, savgol_design_ok, savgol_states
 from dtwin_jax.errors import DataError
 from dtwin_jax.estimate import measured_index, state_smoother
@@ -137,6 +137,7 @@ def update_input_output(
             "input_interpolation": interpolation,
             "input_noise_std": None if noise_var is None else np.sqrt(noise_var).tolist(),
             "samples": int(R * N),
+            "state_range": state_range(xs, previous),
             "effective_samples": None if n_eff is None else n_eff.tolist(),
             "stage_seconds": dict(stages.seconds),
         },
@@ -153,8 +154,11 @@ def update_input_output(
             result = refine_output_error(result, rec.t, rec.x, rec.u, x_names=[names[i] for i in x_index],
                                      x0=xs[:, 0], noise_std=np.maximum(noise, 1e-9 * np.std(rec.x, axis=(0, 1))),
                                      input_noise_std=None if noise_var is None else np.sqrt(noise_var))
-    except DataError as e:  # the Gibbs twin stands; say why it was not refined
-        result = dataclasses.replace(result, checks={**checks, "refinement": {"ok": False, "warnings": [str(e)]}})
+    except Exception as e:  # noqa: BLE001 - the Gibbs twin stands whatever failed; say why, in one line
+        reason = (str(e).strip().splitlines() or [""])[0][:300]
+        result = dataclasses.replace(result, checks={**checks, "refinement": {
+            "ok": False, "warnings": [f"failed ({type(e).__name__}): {reason}; the twin is the Gibbs posterior's, "
+                                      "unrefined"]}})
     preprocessing = {**result.preprocessing, "stage_seconds": dict(stages.seconds)}  # the refinement's too
     return dataclasses.replace(result, preprocessing=preprocessing, seconds=time.perf_counter() - start)
 

@@ -27,6 +27,7 @@ import numpy as np
 from dtwin_jax.data import check_records
 from dtwin_jax.errors import DataError
 from dtwin_jax.estimate import measured_index
+from dtwin_jax.prediction import fixed_substeps, is_nonsmooth
 from dtwin_jax.systems import simulate
 
 __all__ = ["refine_output_error"]
@@ -114,12 +115,15 @@ def _residual_functions(twin, index, t, u, xm, x_index, R):
     perturbations ``du (S, R, N, n)``; all jitted."""
     shape = np.asarray(twin.coefficients).shape
     P = index.size
+    # A sign/Abs term chatters the adaptive solver (minutes, then out of steps): fixed steps.
+    substeps = fixed_substeps(twin.nominal, t) if is_nonsmooth(twin) else None
 
     def free_run(params, u):
         coef = jnp.zeros(int(np.prod(shape)), params.dtype).at[index].set(params[:P]).reshape(shape)
         model = eqx.tree_at(lambda tw: tw.coefficients, twin, coef)
         x0 = params[P:].reshape(R, -1)
-        run = lambda a, b: simulate(model, a, t, b, rtol=1e-8, atol=1e-10, adjoint=diffrax.ForwardMode())[0]
+        run = lambda a, b: simulate(model, a, t, b, rtol=1e-8, atol=1e-10, adjoint=diffrax.ForwardMode(),
+                                    substeps=substeps)[0]
         return jax.vmap(run)(x0, u)[..., x_index]
 
     def residual(params, scale):
@@ -137,7 +141,7 @@ def _cost(residual, params, scale) -> float:
     unstable or too stiff for the solver's step budget)."""
     try:
         r = residual(params, scale)
-    except jax.errors.JaxRuntimeError:
+    except RuntimeError:  # XLA's, or equinox's out-of-steps error (EquinoxRuntimeError)
         return np.inf
     return float(r @ r)
 

@@ -16,7 +16,7 @@ import numpy as np
 from dtwin_jax import aot, kramers_moyal, sampler, statespace
 from dtwin_jax.ahead import Ahead
 from dtwin_jax.checks import residual_checks
-from dtwin_jax.data import check_records
+from dtwin_jax.data import check_records, state_range
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_library
 from dtwin_jax.progress import Stages
@@ -157,6 +157,7 @@ def update_output_only(
             "diffusion_effective_samples": np.asarray(stats.n).tolist(),
             "records": int(R),
             "samples": int(R * N),
+            "state_range": state_range(rec.x, previous),
             "stage_seconds": dict(stages.seconds),
         },
         checks=checks,

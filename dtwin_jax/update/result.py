@@ -78,10 +78,15 @@ class UpdateResult:
             coef = refined_coefficients(coef.shape, self.refinement["index"], self.refinement["mean"])
         diffusion = [e for e in self.equations if e.kind == "diffusion"]
         interpolation = self.preprocessing.get("input_interpolation", "held")
+        # The measured states' range bounds a prediction (absent from twins saved before it).
+        state_range = self.preprocessing.get("state_range")
+        state_range = None if state_range is None else jnp.asarray(state_range, dtype=float)
         if not diffusion:
-            return UpdatedTwin(self.nominal, self.library, index, jnp.asarray(coef), interpolation=interpolation)
+            return UpdatedTwin(self.nominal, self.library, index, jnp.asarray(coef), interpolation=interpolation,
+                               state_range=state_range)
         dcoef = np.stack([e.coefficients for e in diffusion])
-        return UpdatedTwin(self.nominal, self.library, index, jnp.asarray(coef), *diffusion_terms(self, dcoef))
+        return UpdatedTwin(self.nominal, self.library, index, jnp.asarray(coef), *diffusion_terms(self, dcoef),
+                           state_range=state_range)
 
     def diagnostics(self) -> dict:
         """Convergence over all equations (worst R-hat, smallest bulk ESS, PIP spread
