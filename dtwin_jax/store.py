@@ -101,10 +101,6 @@ def _header(result) -> dict:
 def load_twin(path):
     """Read a twin folder written by :func:`save_twin`; returns an
     :class:`~dtwin_jax.update.UpdateResult` whose twin predicts exactly as the saved one."""
-    import arviz as az
-
-    from dtwin_jax.update import SamplerSettings, UpdateResult
-
     path = Path(path)
     missing = [f for f in _FILES if not (path / f).is_file()]
     if not path.is_dir() or missing:
@@ -119,7 +115,15 @@ def load_twin(path):
     if head.get("version") != VERSION:
         raise DataError(f"twin '{path}' has format version {head.get('version')}; this dtwin-jax reads {VERSION}")
     nominal = load_nominal(path / "nominal.toml")
-    lib = parse_library(head["library"], nominal.m, head["num_inputs"])
+    n = head.get("num_inputs")
+    if type(n) is not int or n not in (0, nominal.n):  # 0: a library without inputs
+        raise DataError(f"'{path / 'twin.json'}' has num_inputs {n!r}; expected 0 or {nominal.n} (the nominal B's columns)")
+    lib = parse_library(head["library"], nominal.m, n)
+    # Imported once the header is known good: a bad twin is refused without their cost.
+    import arviz as az
+
+    from dtwin_jax.update import SamplerSettings, UpdateResult
+
     post = az.from_netcdf(path / "posterior.nc", engine="h5netcdf").posterior
     equations = []
     for eq in head["equations"]:
