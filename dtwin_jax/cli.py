@@ -265,15 +265,25 @@ def _write_outputs(args, result) -> None:
         plot_pip(result, args.plot)
 
 
-def _twin_library(twin) -> str | None:
-    """The library spec in a twin's ``twin.json``, or None (unreadable: the loader says why)."""
+def _check_twin_early(twin) -> tuple[str | None, tuple | None]:
+    """A saved twin's sizes checked before its modules are imported: its ``num_inputs``
+    (:func:`~dtwin_jax.resources.check_num_inputs`). Returns its library spec and its nominal
+    ``(d, E, n)``, each None when unreadable (:func:`~dtwin_jax.store.load_twin` says why)."""
     import json
 
+    from dtwin_jax import resources
+
+    sizes = _nominal_sizes(Path(twin) / "nominal.toml")
     try:
-        spec = json.loads((Path(twin) / "twin.json").read_text()).get("library")
+        head = json.loads((Path(twin) / "twin.json").read_text())
     except Exception:  # noqa: BLE001
-        return None
-    return spec if isinstance(spec, str) else None
+        return None, sizes
+    if not isinstance(head, dict):
+        return None, sizes
+    if sizes:
+        resources.check_num_inputs(head.get("num_inputs"), sizes[2], f"'{Path(twin) / 'twin.json'}'")
+    spec = head.get("library")
+    return (spec if isinstance(spec, str) else None), sizes
 
 
 def _update_saved(args) -> int:
@@ -285,7 +295,7 @@ def _update_saved(args) -> int:
     _check_writable(target, folder=True)
     if args.out:
         _check_writable(args.out)
-    _check_early(args, Path(args.twin) / "nominal.toml", _twin_library(args.twin))
+    _check_early(args, Path(args.twin) / "nominal.toml", _check_twin_early(args.twin)[0])
     from dtwin_jax.io import load_measurements
     from dtwin_jax.store import load_twin, save_twin
 
@@ -311,7 +321,7 @@ def _predict(args) -> int:
     from dtwin_jax import resources
 
     _check_writable(args.out)
-    sizes = _nominal_sizes(Path(args.twin) / "nominal.toml")
+    sizes = _check_twin_early(args.twin)[1]
     try:  # the paths' size from the input's times, before the twin's modules are imported
         with np.load(args.input) as z:
             samples = z["t"].size

@@ -16,7 +16,7 @@ import os
 from dtwin_jax.errors import DataError
 
 __all__ = [
-    "MAX_TERMS", "available_bytes", "count_terms", "check_terms", "check_nominal", "check_update", "check_sampler",
+    "MAX_TERMS", "available_bytes", "count_terms", "check_terms", "check_num_inputs", "check_nominal", "check_update", "check_sampler",
     "check_design", "check_prediction", "check_posterior_draws",
 ]
 
@@ -112,6 +112,13 @@ def check_terms(count: int, spec: str) -> None:
         raise DataError(f"library '{spec}' has {_count(count)} terms; at most {MAX_TERMS} are supported")
 
 
+def check_num_inputs(value, inputs: int, where: str) -> None:
+    """A saved twin's ``num_inputs`` (``where`` names its file) before a library is built for
+    it: 0 (no input terms) or the nominal ``B``'s ``inputs`` columns."""
+    if type(value) is not int or value not in (0, inputs):
+        raise DataError(f"{where} has num_inputs {value!r}; expected 0 or {inputs} (the nominal B's columns)")
+
+
 def check_nominal(d: int, extra_states: int, n: int) -> None:
     """The model's ``m = 2d + E`` states: the state-space smoother and the simulators hold
     ``m x m`` matrices (covariances, Jacobians) at every step of a window; ``16 m^2`` floats
@@ -165,12 +172,12 @@ def check_posterior_draws(draws: int, coefficients: int, *, option: str = "num_d
     """Stacked posterior twins: ``draws x coefficients`` floats and their draw indices (a
     few copies)."""
     need = 3 * draws * (coefficients + 2) * _F64
-    _require(need, f"{option} {_count(draws)}", f"the posterior twins ({_count(draws)} draws x "
+    _require(need, f"{option} {draws}", f"the posterior twins ({_count(draws)} draws x "
              f"{_count(coefficients)} coefficients)")
 
 
 def check_prediction(draws: int, samples: int, states: int, *, option: str = "num_draws") -> None:
     """Simulated paths ``draws x samples x states`` (float64) and the copies the quantiles sort."""
     need = 4 * draws * samples * states * _F64
-    _require(need, f"{option} {_count(draws)}",
+    _require(need, f"{option} {draws}",
              f"the predicted paths ({_count(draws)} draws x {_count(samples)} samples x {states} states)")

@@ -32,6 +32,7 @@ from dtwin_jax.errors import DataError
 from dtwin_jax.io import load_nominal, write_json, write_nominal
 from dtwin_jax.library import parse_library
 from dtwin_jax.posterior import EquationPosterior
+from dtwin_jax.resources import check_num_inputs
 
 __all__ = ["FORMAT", "VERSION", "save_twin", "load_twin"]
 
@@ -115,10 +116,8 @@ def load_twin(path):
     if head.get("version") != VERSION:
         raise DataError(f"twin '{path}' has format version {head.get('version')}; this dtwin-jax reads {VERSION}")
     nominal = load_nominal(path / "nominal.toml")
-    n = head.get("num_inputs")
-    if type(n) is not int or n not in (0, nominal.n):  # 0: a library without inputs
-        raise DataError(f"'{path / 'twin.json'}' has num_inputs {n!r}; expected 0 or {nominal.n} (the nominal B's columns)")
-    lib = parse_library(head["library"], nominal.m, n)
+    check_num_inputs(head.get("num_inputs"), nominal.n, f"'{path / 'twin.json'}'")
+    lib = parse_library(head["library"], nominal.m, head["num_inputs"])
     # Imported once the header is known good: a bad twin is refused without their cost.
     import arviz as az
 
