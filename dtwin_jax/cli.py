@@ -393,6 +393,10 @@ def _demo_output_only(args, ex, say) -> int:
     from dtwin_jax.update import update_output_only
 
     ex = ex.for_output_only()
+    from dtwin_jax import resources
+
+    resources.check_prediction(args.records, int(round(ex.duration / ex.dt)) + 1, ex.system.nominal.m,
+                               option="--records", what="simulated records", unit="records")
     say(f"[1/3] simulating {ex.name} under Brownian forcing: {args.records} records of "
         f"{ex.duration:g} s at {1 / ex.dt:g} Hz (diffrax ShARK) ...")
     sim = systems.simulate_example_sde(ex, jax.random.key(args.seed), num_records=args.records)

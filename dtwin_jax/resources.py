@@ -176,8 +176,10 @@ def check_posterior_draws(draws: int, coefficients: int, *, option: str = "num_d
              f"{_count(coefficients)} coefficients)")
 
 
-def check_prediction(draws: int, samples: int, states: int, *, option: str = "num_draws") -> None:
-    """Simulated paths ``draws x samples x states`` (float64) and the copies the quantiles sort."""
+def check_prediction(draws: int, samples: int, states: int, *, option: str = "num_draws",
+                     what: str = "predicted paths", unit: str = "draws") -> None:
+    """Simulated paths ``draws x samples x states`` (float64) and the copies the quantiles
+    sort (or the solver keeps: ``what`` and ``unit`` name them, e.g. a demo's records)."""
     need = 4 * draws * samples * states * _F64
     _require(need, f"{option} {draws}",
-             f"the predicted paths ({_count(draws)} draws x {_count(samples)} samples x {states} states)")
+             f"the {what} ({_count(draws)} {unit} x {_count(samples)} samples x {states} states)")

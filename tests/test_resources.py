@@ -241,3 +241,10 @@ def test_ctrl_c_stops_a_run_in_one_line_and_leaves_no_file(tmp_path):
     lines = [line.strip() for line in re.split(r"[\r\n]", err) if line.strip()]
     assert proc.returncode == 130 and lines[-1] == INTERRUPTED and "Traceback" not in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_demo_records_are_checked(tmp_path, capsys):
+    assert main(["demo", "--mode", "output-only", "--records", "1000000000", "--out-dir", str(tmp_path / "demo")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("dtwin-jax: error: --records 1000000000 needs about") and err.count("\n") == 1, err
+    assert not (tmp_path / "demo").exists()
