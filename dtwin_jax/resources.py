@@ -31,8 +31,10 @@ _KEY = 8  # one threefry key: two uint32
 
 
 def available_bytes() -> int:
-    """Memory this process may still take, bytes: ``MemAvailable`` of ``/proc/meminfo``
-    (else free pages from ``os.sysconf``), lowered to a cgroup's remaining limit."""
+    """Memory this process may still take: ``MemAvailable`` of ``/proc/meminfo`` (else free
+    pages from ``os.sysconf``), lowered to a cgroup's remaining limit.
+
+    **Returns:** bytes (``2**62`` when nothing can be read: no refusal)."""
     avail = None
     try:
         with open("/proc/meminfo") as f:
@@ -89,7 +91,14 @@ def count_terms(spec: str, num_states: int, num_inputs: int) -> int:
     counted without building them (``poly:P`` has ``C(m + P, P)`` monomials), so a huge
     library is refused before its names exist. A token it cannot read counts nothing
     (:func:`dtwin_jax.library.parse_library` says what is wrong with it); a listed term
-    met twice counts twice."""
+    met twice counts twice.
+
+    **Arguments:**
+
+    - `spec`: the library spec, e.g. ``"poly:3,sign"``.
+    - `num_states`, `num_inputs`: ``m`` and ``n``.
+
+    **Returns:** the number of terms ``K`` (an int, huge for a typo such as ``poly:40``)."""
     m, total = int(num_states), 0
     for token in (t.strip() for t in str(spec).split(",")):
         name, _, arg = token.partition(":")
@@ -139,7 +148,16 @@ def check_sampler(equations: int, terms: int, chains: int, draws: int, burn_in: 
     """The Gibbs draws of ``equations`` regressions of ``terms`` terms: per sweep and chain
     ``theta`` (float64), ``gamma`` (bool) and four scalars, kept over burn-in and draws in the
     chunks, their concatenation and the stack over equations, plus one key per sweep.
-    ``names``: how to call draws, chains, burn_in and library in the message."""
+
+    **Arguments:**
+
+    - `equations`, `terms`: regressions ``q`` and library size ``K``.
+    - `chains`, `draws`, `burn_in`: the sampler's settings (sweeps per chain).
+    - `library`: the spec, for the message; `names`: how the message calls draws, chains,
+      burn_in and library (default the Python names, :data:`API_NAMES`).
+
+    Raises :class:`DataError` naming the option furthest above its default when the
+    estimate exceeds :func:`available_bytes`."""
     names = names or API_NAMES
     per_draw = terms * (_F64 + 1) + 4 * _F64
     sweeps = burn_in + draws
