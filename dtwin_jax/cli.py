@@ -6,13 +6,21 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from dtwin_jax.errors import DataError
 from dtwin_jax.runtime import configure_runtime
 
 __all__ = ["main", "console_main", "configure_runtime"]
+
+# The sampler's settings by their option names, for the resource checks' messages.
+_OPTIONS = {"draws": "--draws", "chains": "--chains", "burn_in": "--burn-in", "library": "--library"}
+INTERRUPTED = "dtwin-jax: interrupted; nothing was written"
+# library.DEFAULT_LIBRARY, without importing SymPy for it (tests/test_resources.py checks they agree).
+_DEFAULT_LIBRARY = "poly:6,sign,abs,xabs,exp,expxx,sin,cos,input"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -151,18 +159,20 @@ def _check_threshold(value: float) -> None:
 
 
 def _discover(args) -> int:
-    from dtwin_jax.io import load_measurements, load_nominal
-
     _check_threshold(args.pip_threshold)
     for out in (args.out, args.plot):
         if out:
             _check_writable(out)
     if args.save_twin:
-        from dtwin_jax.store import check_target, locked, save_twin
+        from dtwin_jax.twin_folder import check_target
 
         check_target(args.save_twin, force=args.force)  # before the long run: refuse a user's folder
     elif args.force:
         raise DataError("--force needs --save-twin")
+    _check_early(args, _nominal_sizes(args.nominal), args.library)
+    from dtwin_jax.io import load_measurements, load_nominal
+    from dtwin_jax.twin_folder import locked
+
     nominal = load_nominal(args.nominal)
     data = load_measurements(args.data)
     mode = args.mode or ("input-output" if "u" in data else "output-only")
@@ -171,8 +181,12 @@ def _discover(args) -> int:
     with locked(args.save_twin, on_wait=_waiting(args.save_twin)) if existing else contextlib.nullcontext():
         result = _update(args, mode, nominal, data, library=args.library, diffusion_library=args.diffusion_library)
         _report(args, result)
-        if args.save_twin:
-            save_twin(result, args.save_twin, replace=args.force)
+        with _uninterrupted():
+            _write_outputs(args, result)
+            if args.save_twin:
+                from dtwin_jax.store import save_twin
+
+                save_twin(result, args.save_twin, replace=args.force)
             print(f"saved the twin to {args.save_twin}/")
     return 0
 
@@ -180,6 +194,52 @@ def _discover(args) -> int:
 def _waiting(twin):
     """The one line a command prints when another process holds the twin's lock."""
     return lambda: print(f"dtwin-jax: waiting for twin '{twin}': another process is updating it", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def _uninterrupted():
+    """Ctrl-C is held while a run writes its outputs, and dropped once they are written:
+    a run leaves all its files or none, so "nothing was written" stays true."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, lambda *_: None)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler if previous is None else previous)
+
+
+def _nominal_sizes(path) -> tuple[int, int, int] | None:
+    """``(d, E, n)`` read off a nominal file's matrices (no validation: None when they are not
+    plain lists; :func:`~dtwin_jax.io.load_nominal` later says what is wrong)."""
+    import tomllib
+
+    try:
+        with open(path, "rb") as f:
+            doc = tomllib.load(f)
+        d, E, B = len(doc["M"]), doc.get("extra_states", 0), doc.get("B")
+        n = len(B[0]) if B else d
+    except Exception:  # noqa: BLE001 (any unreadable file: the loader reports it)
+        return None
+    return (d, E, n) if type(E) is int and E >= 0 and d > 0 else None
+
+
+def _check_early(args, sizes, library) -> None:
+    """The update's memory (:mod:`dtwin_jax.resources`) from the options and the nominal
+    file's sizes, before the modules that load and fit the data are imported (they take
+    seconds): an oversize request is refused in about a second. The update checks again,
+    from the data (:func:`dtwin_jax.update.update_input_output`)."""
+    from dtwin_jax import resources
+
+    if sizes is None:
+        return
+    d, E, n = sizes
+    resources.check_nominal(d, E, n)
+    spec = library or _DEFAULT_LIBRARY
+    K = resources.count_terms(spec, 2 * d + E, n)
+    resources.check_terms(K, spec)
+    resources.check_sampler(d + E, K, args.chains, args.draws, args.burn_in, library=spec, names=_OPTIONS)
 
 
 def _update(args, mode, nominal, data, *, library, diffusion_library=None, previous=None, forget=1.0):
@@ -207,10 +267,14 @@ def _update(args, mode, nominal, data, *, library, diffusion_library=None, previ
 
 
 def _report(args, result) -> None:
-    from dtwin_jax.io import write_json
-
     print(result.summary())
     _print_diagnostics(result)
+
+
+def _write_outputs(args, result) -> None:
+    """The result file and the PIP plot, where asked for."""
+    from dtwin_jax.io import write_json
+
     if args.out:
         write_json(args.out, result.to_json())
     if getattr(args, "plot", None):
@@ -219,19 +283,50 @@ def _report(args, result) -> None:
         plot_pip(result, args.plot)
 
 
+def _check_twin_early(twin) -> tuple[str | None, tuple | None]:
+    """A saved twin's sizes checked before its modules are imported: its ``num_inputs``
+    (:func:`~dtwin_jax.resources.check_num_inputs`). Returns its library spec and its nominal
+    ``(d, E, n)``, each None when unreadable (:func:`~dtwin_jax.store.load_twin` says why)."""
+    import json
+    import re
+
+    from dtwin_jax import resources
+
+    folder, header = Path(twin), Path(twin) / "twin.json"
+    try:
+        head = json.loads(header.read_text())
+        current = head.get("current") if head.get("version") == 2 else None
+        if isinstance(current, str) and re.fullmatch(r"v\d{6}", current):  # format 2: a manifest
+            folder, header = folder / current, folder / current / "header.json"
+            head = json.loads(header.read_text())
+    except Exception:  # noqa: BLE001 (any unreadable twin: load_twin reports it)
+        return None, None
+    sizes = _nominal_sizes(folder / "nominal.toml")
+    if not isinstance(head, dict):
+        return None, sizes
+    if sizes:
+        resources.check_num_inputs(head.get("num_inputs"), sizes[2], f"'{header}'")
+    spec = head.get("library")
+    return (spec if isinstance(spec, str) else None), sizes
+
+
 def _update_saved(args) -> int:
     """Re-update a saved twin: its posterior (statistics times --forget) is the prior. The
     twin's lock is held from reading it to writing the update, so concurrent updates queue."""
-    from dtwin_jax.io import load_measurements
-    from dtwin_jax.store import check_target, load_twin, locked, save_twin
-
     _check_threshold(args.pip_threshold)
     if not 0.0 <= args.forget <= 1.0:
         raise DataError(f"--forget must be in [0, 1], got {args.forget:g}")
+    from dtwin_jax.twin_folder import check_target, locked
+
     target = args.out_twin or args.twin
     check_target(target, force=True)  # a twin may be updated in place; a user's folder never
     if args.out:
         _check_writable(args.out)
+    library, sizes = _check_twin_early(args.twin)
+    _check_early(args, sizes, library)
+    from dtwin_jax.io import load_measurements
+    from dtwin_jax.store import load_twin, save_twin
+
     with locked(args.twin, on_wait=_waiting(args.twin)):
         previous = load_twin(args.twin)
         data = load_measurements(args.data)
@@ -241,7 +336,9 @@ def _update_saved(args) -> int:
                          diffusion_library=previous.preprocessing.get("diffusion_library"),
                          previous=previous, forget=args.forget)
         _report(args, result)
-        save_twin(result, target)
+        with _uninterrupted():
+            _write_outputs(args, result)
+            save_twin(result, target)
     print(f"update {len(result.history)} of the twin saved to {target}/")
     return 0
 
@@ -253,13 +350,27 @@ def _predict(args) -> int:
     import jax
     import numpy as np
 
+    from dtwin_jax import resources
+
+    _check_writable(args.out)
+    sizes = _check_twin_early(args.twin)[1]
+    try:  # the paths' size from the input's times, before the twin's modules are imported
+        with np.load(args.input) as z:
+            samples = z["t"].size
+    except Exception:  # noqa: BLE001 (load_prediction_input says what is wrong)
+        samples = None
+    if sizes and samples:
+        resources.check_prediction(args.draws, samples, 2 * sizes[0] + sizes[1], option="--draws")
+    import jax
+
     from dtwin_jax.io import atomic_path, load_prediction_input
     from dtwin_jax.prediction import PredictionWarning, posterior_twins, predict
     from dtwin_jax.store import load_twin
 
-    _check_writable(args.out)
     result = load_twin(args.twin)
     new = load_prediction_input(args.input, result.nominal, needs_input=result.mode == "input-output")
+    resources.check_posterior_draws(args.draws, sum(e.theta.shape[-1] for e in result.equations), option="--draws")
+    resources.check_prediction(args.draws, new["t"].size, result.nominal.m, option="--draws")
     key_draws, key_paths = jax.random.split(jax.random.key(args.seed))
     twins = posterior_twins(result, args.draws, key_draws)
     with warnings.catch_warnings():
@@ -275,7 +386,7 @@ def _predict(args) -> int:
     arrays = {k: np.asarray(out[k]) for k in ("t", "mean", "lower", "upper")}
     if not all(np.all(np.isfinite(a)) for a in arrays.values()):
         raise DataError("the prediction diverged (non-finite states): the twin is unstable under this input")
-    with atomic_path(args.out) as tmp:
+    with _uninterrupted(), atomic_path(args.out) as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)
     print(f"predicted {arrays['t'].size} samples from {args.draws} posterior draws; wrote {args.out}")
@@ -323,6 +434,10 @@ def _demo_output_only(args, ex, say) -> int:
     from dtwin_jax.update import update_output_only
 
     ex = ex.for_output_only()
+    from dtwin_jax import resources
+
+    resources.check_prediction(args.records, int(round(ex.duration / ex.dt)) + 1, ex.system.nominal.m,
+                               option="--records", what="simulated records", unit="records")
     say(f"[1/3] simulating {ex.name} under Brownian forcing: {args.records} records of "
         f"{ex.duration:g} s at {1 / ex.dt:g} Hz (diffrax ShARK) ...")
     sim = systems.simulate_example_sde(ex, jax.random.key(args.seed), num_records=args.records)
@@ -374,12 +489,13 @@ def _finish_demo(ex, result, out: Path, say, arrays: dict, header: list[str],
     for state, gamma in (diffusion or {}).items():
         print(f"{state} [diffusion]: {gamma:g}")
     _print_diagnostics(result)
-    write_json(out / "result.json", result.to_json())
-    plot_pip(result, out / "pip.png")
-    with atomic_path(out / "measurements.npz") as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, **{k: np.asarray(v) for k, v in arrays.items()})
-    write_nominal(out / "nominal.toml", result.nominal)
+    with _uninterrupted():
+        write_json(out / "result.json", result.to_json())
+        plot_pip(result, out / "pip.png")
+        with atomic_path(out / "measurements.npz") as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, **{k: np.asarray(v) for k, v in arrays.items()})
+        write_nominal(out / "nominal.toml", result.nominal)
     print(f"wrote {out}/result.json, {out}/pip.png, {out}/measurements.npz, {out}/nominal.toml")
 
 
@@ -424,9 +540,10 @@ def _sweep(args) -> int:
               + "  ".join(f"{row[k]:>{len(k) - len('median_error_pct') + 13}.3f}" for k in errors))
     print(f"wall time {wall:.1f} s (one compiled program over all levels, compilation included)")
     out = Path(args.out_dir)
-    result.to_csv(out / "sweep.csv")
-    write_json(out / "sweep.json", result.to_json())
-    plot_noise_sweep(result, out / "sweep.png")
+    with _uninterrupted():
+        result.to_csv(out / "sweep.csv")
+        write_json(out / "sweep.json", result.to_json())
+        plot_noise_sweep(result, out / "sweep.png")
     print(f"wrote {out}/sweep.csv, {out}/sweep.json, {out}/sweep.png")
     return 0
 
@@ -442,12 +559,17 @@ def console_main(argv=None) -> int:
         configure_runtime(platform=os.environ.get("DTWIN_JAX_PLATFORM") or
                           ("auto" if args.command == "sweep" else "cpu"))
     except DataError as e:
-        print(f"dtwin-jax: error: {e}", file=sys.stderr)
-        return 2
+        return _error(str(e))
+    except KeyboardInterrupt:
+        print(INTERRUPTED, file=sys.stderr)
+        return 130
     return main(argv)
 
 
 def main(argv=None) -> int:
+    """Run one command; returns the exit status: 0, 2 for bad input or out of memory (one
+    line on standard error), 130 when interrupted, 1 for an internal error (one line;
+    ``DTWIN_JAX_DEBUG=1`` re-raises it with its traceback)."""
     args = _parser().parse_args(argv)
     try:
         if getattr(args, "out_dir", None):
@@ -456,8 +578,37 @@ def main(argv=None) -> int:
                     "update": _update_saved}
         return commands[args.command](args)
     except DataError as e:
-        print(f"dtwin-jax: error: {e}", file=sys.stderr)
-        return 2
+        return _error(str(e))
+    except KeyboardInterrupt:  # the writers are atomic and run last: no file is half-written
+        print(INTERRUPTED, file=sys.stderr)
+        return 130
+    except Exception as e:
+        if os.environ.get("DTWIN_JAX_DEBUG") == "1":
+            raise
+        if _out_of_memory(e):
+            return _error(f"out of memory: {_first_line(e) or type(e).__name__}; "
+                          "try fewer --draws/--chains or a smaller --library")
+        _error(f"internal error: {type(e).__name__}: {_first_line(e)} (set DTWIN_JAX_DEBUG=1 for the traceback)")
+        return 1
+
+
+def _first_line(e: BaseException) -> str:
+    lines = str(e).strip().splitlines()
+    return lines[0].strip() if lines else ""
+
+
+def _error(message: str) -> int:
+    """Print ``dtwin-jax: error: <first line of message>``; returns 2."""
+    lines = message.strip().splitlines()
+    print(f"dtwin-jax: error: {lines[0].strip() if lines else message}", file=sys.stderr)
+    return 2
+
+
+def _out_of_memory(e: BaseException) -> bool:
+    """numpy's ``MemoryError``, or XLA's ``RESOURCE_EXHAUSTED`` (checked by name: no jax import)."""
+    names = {c.__name__ for c in type(e).__mro__}
+    return isinstance(e, MemoryError) or (
+        bool(names & {"JaxRuntimeError", "XlaRuntimeError"}) and "RESOURCE_EXHAUSTED" in str(e))
 
 
 if __name__ == "__main__":

@@ -33,6 +33,7 @@ import sympy
 
 from dtwin_jax.errors import DataError
 from dtwin_jax.expressions import parse_term
+from dtwin_jax.resources import MAX_TERMS, check_terms, count_terms  # noqa: F401 (count_terms: public here too)
 
 DEFAULT_LIBRARY = "poly:6,sign,abs,xabs,exp,expxx,sin,cos,input"
 FAMILIES = ("poly", "sign", "abs", "xabs", "exp", "expx", "expxx", "sin", "cos", "input")
@@ -316,6 +317,10 @@ def parse_library(spec: str, num_states: int, num_inputs: int) -> Library:
         raise DataError("library spec is empty")
     if not all(tokens):
         raise DataError(f"library spec {spec!r} has an empty family")
+    for name, value in (("num_states", num_states), ("num_inputs", num_inputs)):
+        if value > MAX_TERMS:  # each is a SymPy symbol below, used or not
+            raise DataError(f"library needs {name} <= {MAX_TERMS}, got {value}")
+    check_terms(count_terms(spec, num_states, num_inputs), spec)
     xs, us = symbols(int(num_states), int(num_inputs))
     blocks, names, seen = [], [], set()
     for token in tokens:

@@ -22,6 +22,7 @@ import numpy as np
 from dtwin_jax import systems
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library, parse_library
+from dtwin_jax.resources import check_posterior_draws, check_prediction
 from dtwin_jax.systems import LinearSecondOrder
 
 __all__ = ["UpdatedTwin", "posterior_twins", "predict", "simulation_error", "with_model_error", "effective_stiffness",
@@ -124,6 +125,7 @@ def posterior_twins(result, num_draws: int = 100, key=None) -> UpdatedTwin:
     """
     if num_draws < 1:
         raise DataError(f"num_draws must be positive, got {num_draws}")
+    check_posterior_draws(num_draws, sum(e.theta.shape[-1] for e in result.equations))
     key = jax.random.key(0) if key is None else key
     c, k = _draw_index(result, num_draws, key)
     drift = [e for e in result.equations if e.kind == "drift"]
@@ -290,9 +292,10 @@ def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = 
     """
     from dtwin_jax.progress import Bar, tick
 
+    S = jnp.shape(twins.coefficients)[0]
+    check_prediction(S, np.shape(t)[0], twins.nominal.m, option="draws")
     t = jnp.asarray(t, dtype=float)
     x0 = jnp.asarray(x0, dtype=float)
-    S = jnp.shape(twins.coefficients)[0]
     if twins.stochastic:
         key = jax.random.key(0) if key is None else key
         keys = jnp.stack([key] * S) if shared_path else jax.random.split(key, S)

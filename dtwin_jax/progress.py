@@ -64,7 +64,11 @@ class Stages:
         start = time.perf_counter()
         if self._bar is not None:
             self._bar.set_postfix_str(name)
-        yield
+        try:
+            yield
+        except BaseException:  # Ctrl-C or an error: clear the bar before the one-line message
+            self.close()
+            raise
         self.seconds[name] = round(time.perf_counter() - start, 3)
         if self._bar is not None:
             self._bar.update(1)

@@ -58,6 +58,7 @@ from dtwin_jax.errors import DataError
 from dtwin_jax.io import json_safe, load_nominal, write_nominal
 from dtwin_jax.library import parse_library
 from dtwin_jax.posterior import EquationPosterior
+from dtwin_jax.resources import check_num_inputs
 from dtwin_jax.twin_folder import CONTENT, FORMAT, V1_FILES, check_target, locked
 
 __all__ = ["FORMAT", "VERSION", "save_twin", "load_twin", "locked", "check_target", "twin_revision"]
@@ -288,8 +289,9 @@ def load_twin(path):
         raise DataError(f"'{head_name}' is not valid JSON: {e}") from None
     twin_files.check_header(head, str(head_name), terms_required=version == VERSION)
     nominal = load_nominal(folder / "nominal.toml")
-    if head["state_names"] != list(nominal.state_names) or head["num_inputs"] not in (0, nominal.n):
-        raise DataError(f"twin header '{head_name}': its states and inputs do not match '{folder / 'nominal.toml'}'")
+    check_num_inputs(head["num_inputs"], nominal.n, f"'{head_name}'")
+    if head["state_names"] != list(nominal.state_names):
+        raise DataError(f"twin header '{head_name}': its states do not match '{folder / 'nominal.toml'}'")
     lib = parse_library(head["library"], nominal.m, head["num_inputs"])
     dlib = parse_library(head["diffusion_library"], nominal.m, 0) if head["mode"] == "output-only" else None
     equations = _equations(head, blobs, folder, version, lib, dlib, nominal)

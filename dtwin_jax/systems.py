@@ -17,6 +17,7 @@ from jaxtyping import Array, Float, PyTree
 
 from dtwin_jax.errors import DataError
 from dtwin_jax.linalg import mass_solve
+from dtwin_jax.resources import check_nominal
 
 __all__ = [
     "LinearSecondOrder",
@@ -86,6 +87,7 @@ class LinearSecondOrder(eqx.Module):
                 raise DataError(f"nominal {name} has non-finite entries")
         if int(extra_states) != extra_states or extra_states < 0:
             raise DataError(f"extra_states must be a non-negative integer, got {extra_states}")
+        check_nominal(d, int(extra_states), Bn.shape[1])  # before anything holds m = 2d + E states
         cond = np.linalg.cond(arrays["M"])
         if not np.isfinite(cond) or cond > 1e12:
             raise DataError(f"nominal mass matrix M is singular (cond={cond:.3g})")

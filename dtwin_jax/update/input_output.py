@@ -23,6 +23,7 @@ from dtwin_jax.estimate import measured_index, state_smoother
 from dtwin_jax.library import Library, check_columns
 from dtwin_jax.measurement import smooth
 from dtwin_jax.progress import Stages
+from dtwin_jax.resources import check_update
 from dtwin_jax.systems import LinearSecondOrder, check_interpolation
 from dtwin_jax.targets import input_output_targets, smoothed_input_output_stats
 from dtwin_jax.update.lifecycle import check_previous, check_repeat, updated_history, with_previous
@@ -82,6 +83,9 @@ def update_input_output(
     lib = resolve_library(library, nominal, nominal.n)
     check_previous(previous, "input-output", nominal, lib, forget)
     check_repeat(previous, rec, allow_repeat)
+    s = settings
+    check_update(rec.x.shape[0] * rec.x.shape[1], lib.K, len(nominal.regressed_index), s.num_chains, s.num_draws,
+                 s.num_burnin, library=lib.spec)
     hw = auto_half_width(nominal, rec.dt, rec.t.size)
     every = tuple(range(nominal.m))
     partial = x_index != every or (rec.xdot is not None and xdot_index != every)

@@ -20,6 +20,7 @@ from dtwin_jax.data import check_records, state_range
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_library
 from dtwin_jax.progress import Stages
+from dtwin_jax.resources import check_sampler, check_update
 from dtwin_jax.sampler import SuffStats
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.update.lifecycle import check_previous, check_repeat, updated_history, with_previous
@@ -75,6 +76,9 @@ def update_output_only(
     dlib = output_only_library(diffusion_library, nominal, DIFFUSION_LIBRARY)
     check_previous(previous, "output-only", nominal, lib, forget)
     check_repeat(previous, rec, allow_repeat)
+    s, samples = settings, rec.x.shape[0] * rec.x.shape[1]
+    check_update(samples, lib.K, len(nominal.regressed_index), s.num_chains, s.num_draws, s.num_burnin, library=lib.spec)
+    check_sampler(nominal.d, dlib.K, s.num_chains, s.num_draws, s.num_burnin, library=dlib.spec)
     if previous is not None and previous.preprocessing.get("diffusion_library") != dlib.spec:
         raise DataError(f"re-update needs the previous diffusion library '{previous.preprocessing.get('diffusion_library')}'")
     stages = Stages(progress, 5, "output-only update")
