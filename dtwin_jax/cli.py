@@ -463,10 +463,12 @@ def _print_diagnostics(result) -> None:
     each warning (residual and noise-correction checks, chain disagreement, R-hat) on standard error."""
     diag = result.diagnostics()
     failed = sum(not c.get("ok", True) for c in result.checks.values())
-    print(f"diagnostics: R-hat max {diag['rhat_max']}, bulk ESS min {diag['ess_bulk_min']}, "
+    rhat = "n/a" if diag["rhat_max"] is None else f"{diag['rhat_max']:.4f}"
+    ess = "n/a" if diag["ess_bulk_min"] is None else f"{diag['ess_bulk_min']:.0f}"
+    print(f"diagnostics: R-hat max {rhat}, bulk ESS min {ess}, "
           f"largest PIP disagreement between chains {diag['pip_chain_spread_max']:.3f}, "
           f"checks {'passed' if not failed else f'failed: {failed} of {len(result.checks)}'}, "
-          f"{diag['seconds']} s")
+          f"{diag['seconds']:.1f} s")
     for w in result.warnings():
         print(f"dtwin-jax: warning: {w}", file=sys.stderr)
 

@@ -6,17 +6,19 @@ temporary file and rename it, so a failed run leaves nothing half-written.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
 import tempfile
 import tomllib
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
 from dtwin_jax.errors import DataError
-from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.systems import LinearSecondOrder, dtype_word
 
 __all__ = ["load_nominal", "load_measurements", "load_prediction_input", "write_json", "write_nominal", "atomic_path"]
 
@@ -31,9 +33,16 @@ def load_nominal(path) -> LinearSecondOrder:
         raise DataError(f"nominal model file '{path}' does not exist") from None
     except tomllib.TOMLDecodeError as e:
         raise DataError(f"nominal model file '{path}' is not valid TOML: {e}") from None
+    except UnicodeDecodeError:
+        raise DataError(f"nominal model file '{path}' is not UTF-8 text") from None
+    except OSError as e:
+        raise DataError(f"nominal model file '{path}' cannot be read: {e.strerror}") from None
     for key in ("M", "C", "K"):
         if key not in doc:
             raise DataError(f"nominal model file '{path}' is missing key '{key}'")
+    for key in ("M", "C", "K", "B", "F0"):
+        if key in doc:
+            _check_toml_numbers(path, key, doc[key])
     mats = {}
     for key in ("M", "C", "K", "B"):
         if key in doc:
@@ -57,6 +66,17 @@ def load_nominal(path) -> LinearSecondOrder:
     return LinearSecondOrder.create(
         mats["M"], mats["C"], mats["K"], mats.get("B"), extra_states=extra, F0=F0
     )
+
+
+def _check_toml_numbers(path: Path, key: str, value) -> None:
+    """Refuse TOML values a float conversion would accept silently: booleans (``true`` reads
+    as 1.0) and numeric strings (``"1.0"``), anywhere in a nested array."""
+    if isinstance(value, list):
+        for v in value:
+            _check_toml_numbers(path, key, v)
+    elif isinstance(value, bool) or not isinstance(value, (int, float)):
+        shown = str(value).lower() if isinstance(value, bool) else repr(value)  # as TOML spells it
+        raise DataError(f"'{key}' in '{path}' has the entry {shown}, not a number")
 
 
 def write_nominal(path, nominal: LinearSecondOrder) -> None:
@@ -90,7 +110,7 @@ def load_measurements(path) -> dict:
         try:
             with np.load(path, allow_pickle=False) as z:
                 data = {k: np.asarray(z[k]) for k in z.files}
-        except (OSError, ValueError) as e:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
             raise DataError(f"measurement file '{path}' is not a readable .npz: {e}") from None
     elif suffix == ".csv":
         data = _read_csv(path)
@@ -104,8 +124,9 @@ def load_measurements(path) -> dict:
         if key in data:
             out[key] = data[key]
     for key, a in out.items():
-        if not np.issubdtype(np.asarray(a).dtype, np.number):
-            raise DataError(f"'{key}' in '{path}' is not numeric")
+        # Complex values would lose their imaginary part in the float conversion.
+        if np.asarray(a).dtype.kind not in "iuf":
+            raise DataError(f"'{key}' in '{path}' must hold real numbers, got {dtype_word(np.asarray(a).dtype)} values")
     for key in ("x_names", "xdot_names"):
         if key in data:
             names = np.atleast_1d(data[key])
@@ -129,13 +150,13 @@ def load_prediction_input(path, nominal: LinearSecondOrder, *, needs_input: bool
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: np.asarray(z[k]) for k in z.files}
-    except (OSError, ValueError) as e:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise DataError(f"input file '{path}' is not a readable .npz: {e}") from None
     keys = ("t", "x0", "u") if needs_input else ("t", "x0")
     for key in keys:
         if key not in data:
             raise DataError(f"input file '{path}' is missing key '{key}'")
-        if not np.issubdtype(data[key].dtype, np.number) or not np.all(np.isfinite(data[key])):
+        if data[key].dtype.kind not in "iuf" or not np.all(np.isfinite(data[key])):
             raise DataError(f"'{key}' in '{path}' must be finite numbers")
     t, x0 = data["t"].astype(float), data["x0"].astype(float)
     if t.ndim != 1 or t.size < 2 or np.any(np.diff(t) <= 0):
@@ -153,14 +174,37 @@ def load_prediction_input(path, nominal: LinearSecondOrder, *, needs_input: bool
 
 
 def _read_csv(path: Path) -> dict:
-    with path.open() as f:
-        header = [h.strip() for h in f.readline().strip().split(",")]
     try:
-        table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    except ValueError as e:
-        raise DataError(f"measurement file '{path}' has a non-numeric value: {e}") from None
-    if table.shape[1] != len(header):
-        raise DataError(f"'{path}' has {table.shape[1]} columns but its header names {len(header)}")
+        raw = path.read_bytes()
+    except OSError as e:
+        raise DataError(f"measurement file '{path}' cannot be read: {e.strerror}") from None
+    try:
+        text = raw.decode("utf-8-sig")  # a BOM (spreadsheet exports) is not part of the header
+    except UnicodeDecodeError:
+        raise DataError(f"measurement file '{path}' is not UTF-8 text") from None
+    lines = [(i, line) for i, line in enumerate(text.splitlines(), start=1) if line.strip()]
+    if not lines:
+        raise DataError(f"measurement file '{path}' is empty")
+    header = [h.strip() for h in lines[0][1].split(",")]
+    for h in header:
+        if header.count(h) > 1:
+            raise DataError(f"'{path}' names column '{h}' more than once")
+    rows = lines[1:]
+    if not rows:
+        raise DataError(f"measurement file '{path}' has a header but no data rows")
+    for i, line in rows:
+        if line.count(",") != len(header) - 1:
+            raise DataError(f"'{path}' line {i} has {line.count(',') + 1} values but its header names {len(header)}")
+    try:
+        table = np.loadtxt([line for _, line in rows], delimiter=",", ndmin=2)
+    except ValueError:
+        for i, line in rows:  # only on failure: name the file's line, not loadtxt's row
+            for v in line.split(","):
+                try:
+                    float(v)
+                except ValueError:
+                    raise DataError(f"measurement file '{path}' line {i} has a non-numeric value {v.strip()!r}") from None
+        raise DataError(f"measurement file '{path}' has a non-numeric value") from None
     cols = {name: table[:, i] for i, name in enumerate(header)}
     data = {}
     if "t" in cols:
@@ -192,8 +236,26 @@ def _numbered(header, prefix):
     return [h for _, h in found]
 
 
+@functools.cache
+def _umask() -> int:
+    """The process's umask, read once. Linux reports it in /proc; elsewhere it can only be
+    read by setting it, so it is set back at once."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 class atomic_path:
-    """Context manager yielding a temporary path that replaces ``path`` on success only."""
+    """Context manager yielding a temporary path that replaces ``path`` on success only.
+
+    The file gets the mode ``open`` would give it (``0o666`` less the umask): ``mkstemp``
+    creates it ``0o600``, which would hide results from the user's group."""
 
     def __init__(self, path):
         self.path = Path(path)
@@ -206,6 +268,7 @@ class atomic_path:
 
     def __exit__(self, exc_type, exc, tb):
         if exc_type is None:
+            os.chmod(self.tmp, 0o666 & ~_umask())
             os.replace(self.tmp, self.path)
         elif os.path.exists(self.tmp):
             os.remove(self.tmp)

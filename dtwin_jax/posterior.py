@@ -4,6 +4,7 @@ diagnostics (via arviz) and equations."""
 from __future__ import annotations
 
 import math
+from decimal import Decimal
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -139,7 +140,7 @@ class EquationPosterior:
         }
 
     def equation(self) -> str:
-        """``x2: -100000.1(±0.6) x1**3 + ...``."""
+        """``x2: -100.0e3(±0.6e3) x1**3 + ...`` (see :func:`format_coefficient`)."""
         return format_equation(self.state, self.terms(), self.kind)
 
     def to_arviz(self):
@@ -171,11 +172,41 @@ def _diag(fn, draws):
 
 
 def format_coefficient(mean: float, std: float) -> str:
-    """``-100000.1(±0.6)``: the mean to the first significant digit of its std."""
-    if not math.isfinite(std) or std <= 0:
-        return f"{mean:.6g}"
-    decimals = min(max(0, -int(math.floor(math.log10(std)))), 12)
-    return f"{mean:.{decimals}f}(±{std:.{decimals}f})"
+    """A coefficient and its posterior std in engineering notation.
+
+    **Arguments:**
+
+    - ``mean``: the coefficient.
+    - ``std``: its posterior standard deviation; left out of the text when it is zero,
+      negative or not finite.
+
+    **Returns:**
+
+    The mean to 4 significant digits as ``mantissa`` + ``e<exponent>``, the exponent a
+    multiple of 3 (none when it is 0) and the mantissa in [1, 1000); the std in the same
+    exponent with the same number of decimals: ``-99.82e3(±0.51e3)``, ``2.000(±0.007)``,
+    ``-123.5e-15(±5.0e-15)``. A zero mean takes the std's exponent; a non-finite mean is
+    ``nan``, ``inf`` or ``-inf``.
+    """
+    mean, std = float(mean), float(std)
+    if not math.isfinite(mean):
+        return str(mean)
+    show_std = math.isfinite(std) and std > 0
+    scale = abs(mean) if mean != 0 else (std if show_std else 0.0)
+    if scale == 0:
+        return "0"
+    # The exponent of the value rounded to 4 digits (999.96 -> 1.000e3, not 999.96).
+    digits = int(f"{scale:.3e}".split("e")[1])
+    eng = 3 * (digits // 3)
+    decimals = 3 - (digits - eng)
+    suffix = f"e{eng}" if eng else ""
+    # Decimal shifts the exponent exactly, also where 10.0**-eng would overflow (denormals).
+    text = f"{Decimal(mean).scaleb(-eng):.{decimals}f}{suffix}"
+    if text.startswith("-") and float(text[1:].split("e")[0]) == 0:
+        text = text[1:]  # no "-0.000"
+    if show_std:
+        text += f"(±{Decimal(std).scaleb(-eng):.{decimals}f}{suffix})"
+    return text
 
 
 def format_equation(state: str, terms: list[dict], kind: str = "drift") -> str:

@@ -1,4 +1,5 @@
-"""Progress on standard error (tqdm), for the command line and for notebooks.
+"""Progress on standard error (tqdm), for the command line and for notebooks; drawn only
+where it can be (a terminal or a Jupyter kernel, :func:`draws_bars`), never into a file or a pipe.
 
 * :class:`Stages`: an update's stages, one bar step each, its name shown while it runs, so
   that no stage that takes seconds (compilation included) runs silently.
@@ -10,11 +11,24 @@
 from __future__ import annotations
 
 import contextlib
+import sys
 import time
 
-__all__ = ["Stages", "Bar", "tick"]
+__all__ = ["Stages", "Bar", "tick", "draws_bars"]
 
 _BAR: list = [None]  # the open Bar's tqdm, which tick() advances
+
+
+def draws_bars() -> bool:
+    """Whether progress can be drawn: standard error is a terminal, or this is a Jupyter
+    kernel (tqdm.auto draws a widget there). Redrawn bars in a file or a pipe are carriage
+    returns and escape codes that bury the messages a user or a script reads."""
+    if "ipykernel" in sys.modules:
+        return True
+    try:
+        return sys.stderr is not None and sys.stderr.isatty()
+    except (AttributeError, ValueError):  # a replaced or closed stream
+        return False
 
 
 def tick(n=1) -> None:
@@ -24,13 +38,14 @@ def tick(n=1) -> None:
 
 
 class Bar:
-    """``with Bar(show, total, desc):`` a tqdm bar that :func:`tick` advances, or nothing."""
+    """``with Bar(show, total, desc):`` a tqdm bar that :func:`tick` advances, or nothing
+    (``show`` False, or :func:`draws_bars` False)."""
 
     def __init__(self, show: bool, total: int, desc: str):
         self.show, self.total, self.desc = show, total, desc
 
     def __enter__(self):
-        if self.show:
+        if self.show and draws_bars():
             from tqdm.auto import tqdm
 
             _BAR[0] = tqdm(total=self.total, desc=self.desc, leave=False)
@@ -46,14 +61,14 @@ class Bar:
 class Stages:
     """``stages = Stages(enabled, total, "update")``; ``with stages("sampling"): ...``.
 
-    ``total``: the number of stages announced (the bar's length). Disabled: no output and
-    no tqdm import. ``seconds`` maps each stage to its wall time (kept either way; JAX runs
+    ``total``: the number of stages announced (the bar's length). Disabled, or where
+    :func:`draws_bars` is False: no output and no tqdm import. ``seconds`` maps each stage to its wall time (kept either way; JAX runs
     asynchronously, so a stage should end by blocking on its results)."""
 
     def __init__(self, enabled: bool, total: int, desc: str):
         self.seconds: dict[str, float] = {}
         self._bar = None
-        if enabled:
+        if enabled and draws_bars():
             from tqdm.auto import tqdm
 
             self._bar = tqdm(total=total, desc=desc, unit="stage", leave=False,

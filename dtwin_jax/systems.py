@@ -39,6 +39,28 @@ __all__ = [
 ]
 
 
+_MAX_GAIN = 1e150  # largest |M^-1 K|, |M^-1 C|, |M^-1 B|, |M^-1 F0| entry: squares stay finite
+
+
+def dtype_word(dtype) -> str:
+    """A reader's word for a non-real dtype in an error message (``complex``, ``boolean``...)."""
+    dtype = np.dtype(dtype)
+    words = {"c": "complex", "b": "boolean", "U": "string", "S": "bytes", "O": "object", "M": "datetime"}
+    return words.get(dtype.kind, str(dtype))
+
+
+def _real_array(name: str, value) -> np.ndarray:
+    """``value`` as float64, refusing what a float conversion would silently change:
+    complex numbers (the imaginary part dropped), booleans, strings."""
+    try:
+        a = np.asarray(value)
+    except ValueError as e:  # ragged nested lists
+        raise DataError(f"nominal {name} is not a numeric array: {e}") from None
+    if a.dtype.kind not in "iuf":
+        raise DataError(f"nominal {name} must hold real numbers, got {dtype_word(a.dtype)} values")
+    return a.astype(np.float64)
+
+
 class LinearSecondOrder(eqx.Module):
     """Nominal model `M q'' + C q' + K q = B u + F0` in state-space form.
 
@@ -56,11 +78,26 @@ class LinearSecondOrder(eqx.Module):
 
     @classmethod
     def create(cls, M, C, K, B=None, extra_states: int = 0, F0=None) -> "LinearSecondOrder":
-        """Validate concrete matrices and build the model. `B` defaults to the identity,
-        `F0` to zero."""
+        """Validate concrete matrices and build the model.
+
+        **Arguments:**
+
+        - `M`, `C`, `K`: `(d, d)` real matrices; `M` symmetric (to a relative 1e-10) and
+          positive definite, every one finite.
+        - `B`: `(d, n)` or `(d,)`, the identity when None.
+        - `extra_states`: `E`, a non-negative integer.
+        - `F0`: `(d,)` constant force, zero when None.
+
+        **Returns:**
+
+        The model. Raises a one-line `DataError` for complex, boolean or string entries, a
+        wrong shape, a non-finite entry, a nonsymmetric, singular or indefinite `M`, or an
+        `M^-1 K`, `M^-1 C`, `M^-1 B`, `M^-1 F0` with an entry beyond 1e150 (whose
+        square, in the update's Gram matrices, would overflow float64).
+        """
         arrays = {}
         for name, value in (("M", M), ("C", C), ("K", K)):
-            a = np.asarray(value, dtype=np.float64)
+            a = _real_array(name, value)
             if a.ndim != 2 or a.shape[0] != a.shape[1]:
                 raise DataError(f"nominal {name} must be a square matrix, got shape {a.shape}")
             arrays[name] = a
@@ -72,13 +109,13 @@ class LinearSecondOrder(eqx.Module):
                 raise DataError(
                     f"nominal {name} has shape {arrays[name].shape}, expected ({d}, {d}) like M"
                 )
-        Bn = np.eye(d) if B is None else np.asarray(B, dtype=np.float64)
+        Bn = np.eye(d) if B is None else _real_array("B", B)
         if Bn.ndim == 1:
             Bn = Bn[:, None]
         if Bn.ndim != 2 or Bn.shape[0] != d:
             raise DataError(f"nominal B has shape {Bn.shape}, expected ({d}, n)")
         arrays["B"] = Bn
-        F = np.zeros(d) if F0 is None else np.asarray(F0, dtype=np.float64).reshape(-1)
+        F = np.zeros(d) if F0 is None else _real_array("F0", F0).reshape(-1)
         if F.shape != (d,):
             raise DataError(f"nominal F0 has {F.size} entries, expected {d} (one per degree of freedom)")
         arrays["F0"] = F
@@ -88,9 +125,28 @@ class LinearSecondOrder(eqx.Module):
         if int(extra_states) != extra_states or extra_states < 0:
             raise DataError(f"extra_states must be a non-negative integer, got {extra_states}")
         check_nominal(d, int(extra_states), Bn.shape[1])  # before anything holds m = 2d + E states
-        cond = np.linalg.cond(arrays["M"])
+        Mn = arrays["M"]
+        asym = np.max(np.abs(Mn - Mn.T))
+        if asym > 1e-10 * np.max(np.abs(Mn)):  # relative: M may be in any units
+            raise DataError(f"nominal mass matrix M is not symmetric (largest |M - M^T| = {asym:.3g})")
+        with np.errstate(all="ignore"):
+            cond = np.linalg.cond(Mn)
         if not np.isfinite(cond) or cond > 1e12:
             raise DataError(f"nominal mass matrix M is singular (cond={cond:.3g})")
+        try:
+            L = np.linalg.cholesky(Mn)
+        except np.linalg.LinAlgError:
+            raise DataError("nominal mass matrix M is not positive definite") from None
+        # The rate uses M^-1 times each of these, and the update squares rates (Gram matrices,
+        # residual checks): beyond 1e150 those squares overflow float64 and an inf shows up
+        # far from its cause. No model in physical units comes near it.
+        for name in ("K", "C", "B", "F0"):
+            with np.errstate(all="ignore"):
+                scaled = np.linalg.solve(L.T, np.linalg.solve(L, arrays[name]))
+            if not np.all(np.abs(scaled) <= _MAX_GAIN):
+                raise DataError(
+                    f"nominal M^-1 {name} has entries beyond 1e150 (float64 overflows): rescale the model's units"
+                )
         return cls(*(jnp.asarray(arrays[k]) for k in ("M", "C", "K", "B", "F0")), int(extra_states))
 
     @property
@@ -306,6 +362,7 @@ def simulate(
     `RecursiveCheckpointAdjoint`, reverse mode); `diffrax.ForwardMode()` for `jax.jacfwd`.
     """
     t, x0, u = _check_shapes(t, x0, u)
+    t = t - t[0]  # time-invariant: from 0, epoch times (t ~ 1.7e9 s) keep full precision
     sol = _solve(system, x0, t, u, rtol=rtol, atol=atol, max_steps=max_steps, interpolation=interpolation,
                  adjoint=adjoint, substeps=substeps, event=None, throw=True, save_end=False)
     x = sol.ys
@@ -351,6 +408,7 @@ def simulate_checked(
     :data:`MAX_STEPS` or :data:`FAILED`) and `stop_time`, the time (s) the solve reached.
     """
     t, x0, u = _check_shapes(t, x0, u)
+    t0, t = t[0], t - t[0]  # from 0, as in simulate
     event = diffrax.Event(lambda s, y, args, **kw: _outside(s, y, args, lower=lower, upper=upper))
     sol = _solve(system, x0, t, u, rtol=rtol, atol=atol, max_steps=max_steps, interpolation=interpolation,
                  adjoint=diffrax.RecursiveCheckpointAdjoint(), substeps=substeps, event=event, throw=False,
@@ -360,7 +418,7 @@ def simulate_checked(
     ys, ts = sol.ys, sol.ts
     stopped = ts[:N] != t
     x = jnp.where(stopped[:, None], jnp.inf, ys[:N])
-    return x, _status(sol), jnp.max(jnp.where(jnp.isfinite(ts), ts, t[0]))
+    return x, _status(sol), t0 + jnp.max(jnp.where(jnp.isfinite(ts), ts, t[0]))
 
 
 def diffusion_matrix(nominal: LinearSecondOrder) -> Float[Array, "m n"]:
@@ -391,6 +449,7 @@ def system_nominal(system: PerturbedSystem | LinearSecondOrder) -> LinearSecondO
 def _solve_sde(system, x0, t, key, substeps, event, throw):
     nominal = system_nominal(system)
     N = t.shape[0]
+    t = t - t[0]  # time-invariant: from 0, as in simulate
     fine = jnp.linspace(t[0], t[-1], (N - 1) * substeps + 1)
     brownian = diffrax.UnsafeBrownianPath(
         shape=(nominal.n,), key=key, levy_area=diffrax.SpaceTimeLevyArea
@@ -463,7 +522,8 @@ def simulate_sde_checked(
     t, x0 = _check_sde(t, x0)
     event = diffrax.Event(lambda s, y, args, **kw: _outside(s, y, args, lower=lower, upper=upper))
     sol, x = _solve_sde(system, x0, t, key, substeps, event, False)
-    return x, _status(sol), jnp.max(jnp.where(jnp.isfinite(sol.ts), sol.ts, t[0]))
+    # _solve_sde runs from 0: the stop time back on the caller's clock.
+    return x, _status(sol), t[0] + jnp.max(jnp.where(jnp.isfinite(sol.ts), sol.ts, 0.0))
 
 
 # ---------------------------------------------------------------------------

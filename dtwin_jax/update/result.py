@@ -89,22 +89,30 @@ class UpdateResult:
                            state_range=state_range)
 
     def diagnostics(self) -> dict:
-        """Convergence over all equations (worst R-hat, smallest bulk ESS, PIP spread
-        between chains) and the run's settings and wall time in seconds."""
+        """Convergence over all equations and the run's settings.
+
+        **Returns:**
+
+        The ``diagnostics`` of the result file: ``chains``, ``draws``, ``burn_in``; the worst
+        R-hat of the coefficients (``rhat_max``) and of the inclusion indicators
+        (``rhat_gamma_max``), 4 decimals; the smallest bulk ESS (``ess_bulk_min``), a whole
+        number; the largest PIP disagreement between chains, overall and per equation,
+        4 decimals; ``seconds`` of wall time, 3 decimals. None where nothing is selected."""
         rhat = np.concatenate([e.rhat() for e in self.equations] + [np.zeros(0)])
         ess = np.concatenate([e.ess_bulk() for e in self.equations] + [np.zeros(0)])
         rhat_g = np.concatenate([e.rhat_gamma() for e in self.equations] + [np.zeros(0)])
         rhat, ess = rhat[np.isfinite(rhat)], ess[np.isfinite(ess)]
         # inf (chains never overlap) must not vanish; clipped so that the JSON stays valid.
         rhat_g = np.minimum(rhat_g[~np.isnan(rhat_g)], 1e6)
-        spread = {self._label(e): e.pip_chain_spread_max for e in self.equations}
+        # Rounded to what the estimates resolve (an R-hat's 4th decimal, a whole draw).
+        spread = {self._label(e): round(e.pip_chain_spread_max, 4) for e in self.equations}
         return {
             "chains": self.settings.num_chains,
             "draws": self.settings.num_draws,
             "burn_in": self.settings.num_burnin,
-            "rhat_max": float(rhat.max()) if rhat.size else None,
-            "rhat_gamma_max": float(rhat_g.max()) if rhat_g.size else None,
-            "ess_bulk_min": float(ess.min()) if ess.size else None,
+            "rhat_max": round(float(rhat.max()), 4) if rhat.size else None,
+            "rhat_gamma_max": round(float(rhat_g.max()), 4) if rhat_g.size else None,
+            "ess_bulk_min": float(round(ess.min())) if ess.size else None,
             "pip_chain_spread_max": max(spread.values(), default=0.0),
             "pip_chain_spread": spread,
             "seconds": round(self.seconds, 3),
