@@ -99,7 +99,8 @@ def friction_cli(tmp_path_factory):
     return tmp, ex
 
 
-def test_friction_twin_from_the_cli_predicts_25_s(friction_cli, capsys):
+def test_friction_twin_from_the_cli_predicts_25_s(friction_cli, capsys, monkeypatch):
+    monkeypatch.setattr("dtwin_jax.progress.draws_bars", lambda: True)  # as on a terminal
     tmp, ex = friction_cli
     result = load_twin(tmp / "twin")
     assert "sign(x2)" in [n for n, s in zip(result.equations[0].names, result.equations[0].selected) if s]
