@@ -222,6 +222,12 @@ def test_outputs_are_written_with_ctrl_c_held():
     assert signal.getsignal(signal.SIGINT) is before
 
 
+# The command as a shell starts it, with Ctrl-C's default action: pytest-xdist's workers
+# ignore SIGINT, and a program started with SIGINT ignored keeps ignoring it.
+_DEFAULT_SIGINT = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); "
+                   "os.execv(sys.executable, [sys.executable, '-m', 'dtwin_jax.cli', *sys.argv[1:]])")
+
+
 def test_ctrl_c_stops_a_run_in_one_line_and_leaves_no_file(tmp_path):
     """SIGINT a few seconds into a long discover: exit 130, one line, no result or temporary file."""
     np.savez(tmp_path / "data.npz", **_data(N=2000))
@@ -229,7 +235,7 @@ def test_ctrl_c_stops_a_run_in_one_line_and_leaves_no_file(tmp_path):
     before = sorted(p.name for p in tmp_path.iterdir())
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.Popen(
-        [sys.executable, "-m", "dtwin_jax.cli", "discover", "data.npz", "--nominal", "nominal.toml", "--out", "r.json",
+        [sys.executable, "-c", _DEFAULT_SIGINT, "discover", "data.npz", "--nominal", "nominal.toml", "--out", "r.json",
          "--save-twin", "twin", "--draws", "200000", "--chains", "2"],
         cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(4)

@@ -288,6 +288,41 @@ def test_two_update_processes_keep_both_windows(saved, tmp_path):
     assert len({h["window_sha256"] for h in history}) == 3
 
 
+_UPDATER = """
+import dataclasses, sys
+from dtwin_jax.store import load_twin, locked, save_twin
+twin, name = sys.argv[1], sys.argv[2]
+print("ready", flush=True)
+sys.stdin.readline()  # both processes start their rounds together
+for i in range(5):
+    with locked(twin):  # read, update (a made-up history entry) and write under the lock
+        result = load_twin(twin)
+        entry = {"update": len(result.history) + 1, "tag": f"{name}{i}"}
+        save_twin(dataclasses.replace(result, history=list(result.history) + [entry]), twin)
+"""
+
+
+def test_two_processes_update_one_twin_five_times_each_and_lose_nothing(saved, tmp_path):
+    # Five rounds of two processes updating one twin at once (the sampling replaced by a
+    # made-up history entry, so that the rounds overlap within a second).
+    twin = _copy(saved, tmp_path)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    procs = [subprocess.Popen([sys.executable, "-c", _UPDATER, str(twin), name], env=env, text=True,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE) for name in "ab"]
+    for p in procs:
+        assert p.stdout.readline().strip() == "ready"
+    for p in procs:
+        p.stdin.write("go\n")
+        p.stdin.flush()
+    for p in procs:
+        _, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err
+    history = load_twin(twin).history
+    tags = [h["tag"] for h in history[1:]]
+    assert sorted(tags) == sorted(f"{n}{i}" for n in "ab" for i in range(5))
+    assert [h["update"] for h in history] == list(range(1, 12))
+
+
 @pytest.mark.parametrize("step", ["files", "folder", "pointer", "cleanup"])
 def test_a_save_killed_at_any_step_leaves_a_twin_and_no_leftovers(saved, tmp_path, monkeypatch, step):
     twin = _copy(saved, tmp_path)
