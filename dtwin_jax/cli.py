@@ -187,7 +187,7 @@ def _discover(args) -> int:
                 from dtwin_jax.store import save_twin
 
                 save_twin(result, args.save_twin, replace=args.force)
-            print(f"saved the twin to {args.save_twin}/")
+                print(f"saved the twin to {args.save_twin}/")
     return 0
 
 
@@ -361,8 +361,6 @@ def _predict(args) -> int:
         samples = None
     if sizes and samples:
         resources.check_prediction(args.draws, samples, 2 * sizes[0] + sizes[1], option="--draws")
-    import jax
-
     from dtwin_jax.io import atomic_path, load_prediction_input
     from dtwin_jax.prediction import PredictionWarning, posterior_twins, predict
     from dtwin_jax.store import load_twin

@@ -7,7 +7,7 @@ from typing import NamedTuple
 import numpy as np
 
 from dtwin_jax.errors import DataError
-from dtwin_jax.systems import LinearSecondOrder, dtype_word
+from dtwin_jax.systems import LinearSecondOrder, real_array
 
 __all__ = ["Records", "check_records", "state_range", "uniform_times"]
 
@@ -30,20 +30,8 @@ class Records(NamedTuple):
         return float(self.t[1] - self.t[0])
 
 
-def _real(name: str, a) -> np.ndarray:
-    """``a`` as float64; complex (its imaginary part would be dropped with only a warning),
-    boolean and string arrays are refused."""
-    try:
-        a = np.asarray(a)
-    except ValueError as e:  # ragged nested lists
-        raise DataError(f"'{name}' is not a numeric array: {e}") from None
-    if a.dtype.kind not in "iuf":
-        raise DataError(f"'{name}' must hold real numbers, got {dtype_word(a.dtype)} values")
-    return a.astype(np.float64)
-
-
 def _as_records(name: str, a, N: int, width: int | None, what: str) -> np.ndarray:
-    a = _real(name, a)
+    a = real_array(f"'{name}'", a)
     if a.ndim == 2:
         a = a[None]
     if a.ndim != 3:
@@ -77,7 +65,7 @@ def uniform_times(t) -> np.ndarray:
     within ``STEP_RTOL`` of ``dt``, plus 4 float64 spacings of ``max|t|``: epoch timestamps
     (``t ~ 1.7e9`` s) are stored to about 2.4e-7 s, which at 10 kHz is 0.24% of a step.
     Later code sees times from 0, so the size of ``t[0]`` costs no precision there."""
-    t = _real("t", t)
+    t = real_array("'t'", t)
     if t.ndim != 1:
         raise DataError(f"'t' must be one-dimensional, got shape {t.shape}")
     if t.size < _MIN_SAMPLES:

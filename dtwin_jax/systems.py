@@ -49,15 +49,16 @@ def dtype_word(dtype) -> str:
     return words.get(dtype.kind, str(dtype))
 
 
-def _real_array(name: str, value) -> np.ndarray:
+def real_array(label: str, value) -> np.ndarray:
     """``value`` as float64, refusing what a float conversion would silently change:
-    complex numbers (the imaginary part dropped), booleans, strings."""
+    complex numbers (the imaginary part dropped), booleans, strings. ``label`` names it in
+    the one-line error (``"'x'"``, ``"nominal M"``)."""
     try:
         a = np.asarray(value)
     except ValueError as e:  # ragged nested lists
-        raise DataError(f"nominal {name} is not a numeric array: {e}") from None
+        raise DataError(f"{label} is not a numeric array: {e}") from None
     if a.dtype.kind not in "iuf":
-        raise DataError(f"nominal {name} must hold real numbers, got {dtype_word(a.dtype)} values")
+        raise DataError(f"{label} must hold real numbers, got {dtype_word(a.dtype)} values")
     return a.astype(np.float64)
 
 
@@ -97,7 +98,7 @@ class LinearSecondOrder(eqx.Module):
         """
         arrays = {}
         for name, value in (("M", M), ("C", C), ("K", K)):
-            a = _real_array(name, value)
+            a = real_array(f"nominal {name}", value)
             if a.ndim != 2 or a.shape[0] != a.shape[1]:
                 raise DataError(f"nominal {name} must be a square matrix, got shape {a.shape}")
             arrays[name] = a
@@ -109,13 +110,13 @@ class LinearSecondOrder(eqx.Module):
                 raise DataError(
                     f"nominal {name} has shape {arrays[name].shape}, expected ({d}, {d}) like M"
                 )
-        Bn = np.eye(d) if B is None else _real_array("B", B)
+        Bn = np.eye(d) if B is None else real_array("nominal B", B)
         if Bn.ndim == 1:
             Bn = Bn[:, None]
         if Bn.ndim != 2 or Bn.shape[0] != d:
             raise DataError(f"nominal B has shape {Bn.shape}, expected ({d}, n)")
         arrays["B"] = Bn
-        F = np.zeros(d) if F0 is None else _real_array("F0", F0).reshape(-1)
+        F = np.zeros(d) if F0 is None else real_array("nominal F0", F0).reshape(-1)
         if F.shape != (d,):
             raise DataError(f"nominal F0 has {F.size} entries, expected {d} (one per degree of freedom)")
         arrays["F0"] = F

@@ -14,27 +14,18 @@ import time
 from pathlib import Path
 
 import h5py
-import jax
 import numpy as np
 import pytest
 
-from dtwin_jax import store, systems
+from dtwin_jax import store
 from dtwin_jax.cli import main
 from dtwin_jax.errors import DataError
 from dtwin_jax.io import write_nominal
-from dtwin_jax.measurement import measure
 from dtwin_jax.store import load_twin, locked, save_twin
+from test_lifecycle import _window
 
 TINY = ["--chains", "2", "--draws", "200", "--burn-in", "100", "--quiet"]
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _window(path, seed):
-    ex = systems.EXAMPLES["example1"]()
-    sim = systems.simulate_example(ex, jax.random.key(seed))
-    meas = measure(jax.random.key(seed + 1), sim["t"], sim["x"], sim["xdot"], sim["u"], level=0.05)
-    np.savez(path, t=meas.t, x=meas.x, u=meas.u, xdot=meas.xdot)
-    return ex
 
 
 @pytest.fixture(scope="module")
