@@ -319,6 +319,10 @@ def _update_saved(args) -> int:
     from dtwin_jax.twin_folder import check_target, locked
 
     target = args.out_twin or args.twin
+    # In place, the twin is replaced by its continuation; --out-twin must not be another twin
+    # (whose history the result does not continue): refused here, before the run.
+    if Path(target).resolve() != Path(args.twin).resolve() and (Path(target) / "twin.json").is_file():
+        raise DataError(f"--out-twin '{target}' already holds another twin; give a new or empty folder")
     check_target(target, force=True)  # a twin may be updated in place; a user's folder never
     if args.out:
         _check_writable(args.out)

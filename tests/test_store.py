@@ -211,6 +211,17 @@ def test_discover_refuses_a_user_folder_and_an_existing_twin_before_running(save
     assert "already in the twin's history" in capsys.readouterr().err
 
 
+def test_update_out_twin_refuses_another_twin_before_running(saved, tmp_path, capsys):
+    twin, other = _copy(saved, tmp_path), _copy(saved, tmp_path, "other")
+    before = load_twin(other).history
+    start = time.perf_counter()
+    assert main(["update", str(twin), str(saved / "w2.npz"), "--out-twin", str(other)] + TINY) == 2
+    assert time.perf_counter() - start < 5.0  # refused before the update runs
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"dtwin-jax: error: --out-twin '{other}' already holds another twin; give a new or empty folder"]
+    assert load_twin(other).history == before
+
+
 def test_force_replaces_the_twin_but_not_the_files_beside_it(saved, tmp_path):
     twin = _copy(saved, tmp_path)
     (twin / "NOTES.txt").write_text("notes")
