@@ -6,7 +6,6 @@ temporary file and rename it, so a failed run leaves nothing half-written.
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import os
@@ -19,6 +18,7 @@ import numpy as np
 
 from dtwin_jax.errors import DataError
 from dtwin_jax.systems import LinearSecondOrder, dtype_word
+from dtwin_jax.twin_folder import umask
 
 __all__ = ["load_nominal", "load_measurements", "load_prediction_input", "write_json", "write_nominal", "atomic_path"]
 
@@ -236,21 +236,6 @@ def _numbered(header, prefix):
     return [h for _, h in found]
 
 
-@functools.cache
-def _umask() -> int:
-    """The process's umask, read once. Linux reports it in /proc; elsewhere it can only be
-    read by setting it, so it is set back at once."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("Umask:"):
-                return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
 class atomic_path:
     """Context manager yielding a temporary path that replaces ``path`` on success only.
 
@@ -268,7 +253,7 @@ class atomic_path:
 
     def __exit__(self, exc_type, exc, tb):
         if exc_type is None:
-            os.chmod(self.tmp, 0o666 & ~_umask())
+            os.chmod(self.tmp, 0o666 & ~umask())
             os.replace(self.tmp, self.path)
         elif os.path.exists(self.tmp):
             os.remove(self.tmp)

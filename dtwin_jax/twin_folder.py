@@ -29,10 +29,18 @@ _held = threading.local()  # this thread's held locks: realpath -> depth (re-ent
 
 
 def umask() -> int:
-    """The process's umask: a twin's files get ``0o666 & ~umask()`` (tempfile makes 0600)."""
-    old = os.umask(0)
-    os.umask(old)
-    return old
+    """The process's umask: written files get ``0o666 & ~umask()`` (tempfile makes 0600).
+    Linux reports it in /proc; elsewhere it can only be read by setting it (to 022 for that
+    instant, not 0, so that another thread's file is never made world-writable)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 @contextmanager

@@ -13,7 +13,6 @@ import sys
 import numpy as np
 import pytest
 
-from dtwin_jax import io as dio
 from dtwin_jax.cli import main
 from dtwin_jax.data import check_records, uniform_times
 from dtwin_jax.errors import DataError
@@ -252,17 +251,11 @@ def test_command_line_bad_nominal_is_one_line_and_no_file(tmp_path, capsys, nomi
 
 @pytest.fixture
 def umask():
-    """Set the umask for one test (and forget the cached one before and after)."""
+    """Set the umask for one test (the writers read it at each write)."""
     old = os.umask(0o022)
     os.umask(old)
-
-    def set_(mask):
-        os.umask(mask)
-        dio._umask.cache_clear()
-
-    yield set_
+    yield os.umask
     os.umask(old)
-    dio._umask.cache_clear()
 
 
 def test_write_json_follows_the_umask(tmp_path, umask):
