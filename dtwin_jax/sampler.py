@@ -38,7 +38,6 @@ starts a posterior with several modes shows up as chains that disagree (per-chai
 
 from __future__ import annotations
 
-import functools
 import inspect
 from typing import NamedTuple
 

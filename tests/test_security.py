@@ -23,10 +23,10 @@ def payloads(marker):
         f"x1*({cmd})",
         f"sign({cmd})",
         f"(lambda: {cmd})()",
-        f"[c for c in ().__class__.__bases__[0].__subclasses__()]",
+        "[c for c in ().__class__.__bases__[0].__subclasses__()]",
         f"exec(\"{cmd}\")",
         f"eval(\"{cmd}\")",
-        f"x1.__class__.__init__.__globals__",
+        "x1.__class__.__init__.__globals__",
         "Symbol('x1')",
     ]
 
