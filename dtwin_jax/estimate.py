@@ -16,12 +16,14 @@ then gives every state and the disturbance, and the disturbance is the framework
 `xdot - f(x, u)` of every regressed state.
 
 :func:`identify_linear` fits the nominal linear model itself from input-output data with
-the same smoother (starting from pure kinematics), for a structure without a model.
+the same smoother (starting from pure kinematics), for a structure without a model; known
+parameters (a mass, `K = 0`) can be fixed, and the model it returns is never unstable.
 """
 
 from __future__ import annotations
 
 import functools
+import warnings
 
 import equinox as eqx
 import jax
@@ -31,7 +33,7 @@ import numpy as np
 from dtwin_jax.errors import DataError
 from dtwin_jax.kalman import kalman_filter, newton_log_variances, rts_smoother
 from dtwin_jax.linalg import expm, mass_solve
-from dtwin_jax.systems import UPSAMPLE, LinearSecondOrder, check_interpolation, upsample
+from dtwin_jax.systems import UPSAMPLE, LinearSecondOrder, check_interpolation, real_array, upsample
 
 __all__ = ["measured_index", "discretize", "state_smoother", "identify_linear"]
 
@@ -245,6 +247,95 @@ def state_smoother(
     return np.asarray(s[..., :m]), np.asarray(rates), info
 
 
+_FIXABLE = ("M", "C", "K", "B", "F0")
+_SIGN = {"K": -1.0, "C": -1.0, "B": 1.0, "F0": 1.0}  # force = -K q - C v + B u + F0
+# A returned model's eigenvalues may have real parts up to this times the spectral radius
+# (the round-off of an exact zero mode, e.g. an integrating plant's).
+STABLE_RTOL = 1e-6
+
+
+def _check_fixed(fixed, d: int, n: int) -> dict[str, np.ndarray]:
+    """`fixed` as float64 arrays of the model's shapes; a scalar `M`, `C`, `K` is that
+    multiple of the identity, a scalar `B`, `F0` fills every entry."""
+    if fixed is None:
+        return {}
+    if not isinstance(fixed, dict):
+        raise DataError(f"'fixed' must be a dict with keys among {list(_FIXABLE)}, got {type(fixed).__name__}")
+    unknown = [k for k in fixed if k not in _FIXABLE]
+    if unknown:
+        raise DataError(f"'fixed' has unknown keys {unknown}; the keys are {list(_FIXABLE)}")
+    shapes = {"M": (d, d), "C": (d, d), "K": (d, d), "B": (d, n), "F0": (d,)}
+    out = {}
+    for name, value in fixed.items():
+        a = real_array(f"fixed {name}", value)
+        if a.ndim == 0:
+            a = float(a) * np.eye(d) if name in ("M", "C", "K") else np.full(shapes[name], float(a))
+        elif name == "B" and a.ndim == 1 and n == 1:
+            a = a[:, None]
+        if a.shape != shapes[name]:
+            raise DataError(f"fixed {name} has shape {a.shape}, expected {shapes[name]} or a scalar")
+        if not np.all(np.isfinite(a)):
+            raise DataError(f"fixed {name} has a non-finite entry")
+        out[name] = a
+    if "M" in out:
+        M = out["M"]
+        if not np.allclose(M, M.T, rtol=1e-10, atol=0) or np.min(np.linalg.eigvalsh(M)) <= 0:
+            raise DataError("fixed M must be symmetric positive definite")
+    return out
+
+
+def _max_real_part(M, C, K) -> tuple[float, float]:
+    """Largest eigenvalue real part (1/s) of `[[0, I], [-M^-1 K, -M^-1 C]]` and the tolerance
+    it must not exceed."""
+    d = M.shape[0]
+    A = np.block([[np.zeros((d, d)), np.eye(d)], [-np.linalg.solve(M, K), -np.linalg.solve(M, C)]])
+    lam = np.linalg.eigvals(A)
+    return float(np.max(lam.real)), STABLE_RTOL * float(np.max(np.abs(lam)))
+
+
+def _psd_part(a: np.ndarray) -> np.ndarray:
+    """The nearest symmetric positive semidefinite matrix (Frobenius norm)."""
+    w, v = np.linalg.eigh(0.5 * (a + a.T))
+    return (v * np.maximum(w, 0.0)) @ v.T
+
+
+def _fit_rounds(rec, x_index, xdot_index, d, n, M, fixed, nominal, interpolation, max_iterations, rtol):
+    """The smoother / least-squares rounds of :func:`identify_linear`; returns `C, K, B, F0`
+    in force units (`M` times the acceleration)."""
+    free = [k for k in ("K", "C", "B", "F0") if k not in fixed]
+    widths = {"K": d, "C": d, "B": n, "F0": 1}
+    params = {k: fixed[k] for k in fixed if k != "M"}
+    previous = None
+    for _ in range(max_iterations):
+        xs, rates, _ = state_smoother(
+            nominal, rec.dt, rec.x, x_index, rec.u, rec.xdot, xdot_index, interpolation=interpolation
+        )
+        phi = {"K": xs[..., :d], "C": xs[..., d : 2 * d], "B": rec.u, "F0": np.ones(xs.shape[:-1] + (1,))}
+        phi = {k: v.reshape(-1, v.shape[-1]) for k, v in phi.items()}
+        # M a = sum of the terms; the fixed ones move to the target, the free ones are fitted.
+        target = rates[..., d : 2 * d].reshape(-1, d) @ M.T
+        for k in fixed.keys() - {"M"}:
+            target = target - _SIGN[k] * phi[k] @ fixed[k].reshape(d, -1).T
+        if free:
+            coef, *_ = np.linalg.lstsq(np.concatenate([phi[k] for k in free], axis=1), target, rcond=None)
+            at = 0
+            for k in free:
+                params[k] = _SIGN[k] * coef[at : at + widths[k]].T
+                at += widths[k]
+        params["F0"] = params["F0"].reshape(d)
+        nominal = LinearSecondOrder.create(M, params["C"], params["K"], params["B"], F0=params["F0"])
+        regressors = np.concatenate([phi[k] for k in ("K", "C", "B", "F0")], axis=1)
+        full = np.concatenate([_SIGN[k] * params[k].reshape(d, -1) for k in ("K", "C", "B", "F0")], axis=1)
+        if not free:
+            break
+        if previous is not None:
+            moved = np.std(regressors @ (full - previous).T, axis=0)
+            if np.all(moved <= rtol * np.std(regressors @ full.T, axis=0)):
+                break
+        previous = full
+    return nominal
+
+
 def identify_linear(
     t,
     x,
@@ -257,20 +348,52 @@ def identify_linear(
     interpolation: str = "held",
     max_iterations: int = 30,
     rtol: float = 1e-4,
+    fixed: dict | None = None,
 ) -> LinearSecondOrder:
-    """A linear model `q'' + C q' + K q = B u + F0` (unit mass matrix: only `M^-1` times
-    the rest is identifiable without a known force scale) fitted to input-output records.
+    """A linear model `M q'' + C q' + K q = B u + F0` fitted to input-output records.
 
-    `t (N,)` s, `x (N, p)` or `(R, N, p)` measured states named `x_names` (default all
-    `2d`), `u (.., N, n)` inputs. Starting from pure kinematics (`C = K = B = F0 = 0`, the
-    whole acceleration a disturbance), :func:`state_smoother` estimates every state and
-    acceleration, least squares fits `C, K, B, F0` to them, and the smoother runs again
-    under the fitted model, until the fitted acceleration moves by less than `rtol` of its
-    std (at most `max_iterations` rounds): the model then interpolates between the samples,
-    which at a few samples per period no differentiating filter can. The smoother shrinks
-    the disturbance toward the current model, so each round corrects only part of the gap
-    (a lightly damped system at 9 samples per period: C 7.5% and B 3.5% short after 4
+    Starting from pure kinematics (`C = K = B = F0 = 0`, the whole acceleration a
+    disturbance), :func:`state_smoother` estimates every state and acceleration, least
+    squares fits the free parameters to them, and the smoother runs again under the fitted
+    model, until the fitted acceleration moves by less than `rtol` of its std (at most
+    `max_iterations` rounds): the model then interpolates between the samples, which at a
+    few samples per period no differentiating filter can. The smoother shrinks the
+    disturbance toward the current model, so each round corrects only part of the gap (a
+    lightly damped system at 9 samples per period: C 7.5% and B 3.5% short after 4
     rounds, exact after 12).
+
+    The returned model is never unstable (no eigenvalue of `[[0, I], [-M^-1 K, -M^-1 C]]`
+    with a real part above `STABLE_RTOL` times the spectral radius): when the free fit is,
+    each free `K`, `C` that is not symmetric positive semidefinite is replaced by its
+    nearest such matrix (a negative stiffness or damping clipped to 0), fixed there, the
+    rest refitted, and a one-line `UserWarning` names what was clipped. An integrating
+    plant (no spring) fitted from closed-loop data may need this; pass `fixed={"K": 0}`
+    to say so up front. If clipping cannot make it stable (an unstable fixed part, a
+    circulatory `K`) a one-line `DataError` is raised.
+
+    **Arguments:**
+
+    - `t`: `(N,)` sample times, s, uniform.
+    - `x`: `(N, p)` or `(R, N, p)` measured states named `x_names` (default all `2d`:
+      displacements then velocities).
+    - `u`: `(.., N, n)` inputs (force units when `M` is fixed).
+    - `d`: degrees of freedom.
+    - `xdot`, `xdot_names`: measured rates, or None.
+    - `interpolation`: the input between samples, `"held"`, `"linear"` or `"bandlimited"`.
+    - `max_iterations`, `rtol`: the rounds' limit and stopping tolerance.
+    - `fixed`: known parameters, `{name: value}` with names among `M (d, d)`, `C (d, d)`,
+      `K (d, d)`, `B (d, n)`, `F0 (d,)` (a scalar `M`, `C`, `K` is that times the
+      identity, a scalar `B`, `F0` fills every entry); only the rest is fitted. A known
+      `M` (symmetric positive definite, kg) sets the force scale: every parameter is then
+      in physical units (C N s/m, K N/m, B N per input unit, F0 N). Without `M` the mass
+      is the identity and `C`, `K`, `B`, `F0` (fixed or fitted) are per unit mass, since
+      only `M^-1` times them is identifiable.
+
+    **Returns:**
+
+    The `LinearSecondOrder`, its `M` the fixed one or the identity. Raises a one-line
+    `DataError` for a bad `fixed` (unknown key, wrong shape, non-finite entry, an `M` not
+    symmetric positive definite) or an unstable fit that clipping cannot repair.
     """
     from dtwin_jax.data import check_records
 
@@ -280,27 +403,39 @@ def identify_linear(
     x = np.asarray(x, dtype=np.float64)
     u = np.asarray(u, dtype=np.float64)
     n = u.shape[-1]
-    nominal = LinearSecondOrder.create(np.eye(d), np.zeros((d, d)), np.zeros((d, d)), np.zeros((d, n)))
+    fixed = _check_fixed(fixed, d, n)
+    M = fixed.get("M", np.eye(d))
+    nominal = LinearSecondOrder.create(M, np.zeros((d, d)), np.zeros((d, d)), np.zeros((d, n)))
     x_index = measured_index(x_names, nominal)
     xdot_index = measured_index(xdot_names, nominal, "xdot_names") if xdot is not None else ()
     rec = check_records(t, x, u, xdot)
     if rec.x.shape[-1] != len(x_index):
         raise DataError(f"'x' has {rec.x.shape[-1]} columns but x_names names {len(x_index)}")
-    previous = None
-    for _ in range(max_iterations):
-        xs, rates, _ = state_smoother(
-            nominal, rec.dt, rec.x, x_index, rec.u, rec.xdot, xdot_index, interpolation=interpolation
+    args = (rec, x_index, xdot_index, d, n, M)
+    nominal = _fit_rounds(*args, fixed, nominal, interpolation, max_iterations, rtol)
+    for _ in range(3):  # clip K and C, then again if the refit exposes the other one
+        C, K = np.asarray(nominal.C), np.asarray(nominal.K)
+        worst, tol = _max_real_part(M, C, K)
+        if worst <= tol:
+            return nominal
+        clip = {k: _psd_part(v) for k, v in (("K", K), ("C", C)) if k not in fixed}
+        clip = {k: v for k, v in clip.items() if not np.allclose(v, (K if k == "K" else C), rtol=1e-12, atol=0)}
+        if not clip:
+            break
+        what = ", ".join(
+            f"{k} (smallest eigenvalue {np.min(np.linalg.eigvalsh(0.5 * (a + a.T))):.4g})"
+            for k, a in (("K", K), ("C", C)) if k in clip
         )
-        regressors = np.concatenate([xs[..., : 2 * d], rec.u, np.ones(xs.shape[:-1] + (1,))], axis=-1)
-        regressors = regressors.reshape(-1, regressors.shape[-1])
-        coef, *_ = np.linalg.lstsq(regressors, rates[..., d : 2 * d].reshape(-1, d), rcond=None)
-        coef = coef.T  # (d, 2d + n + 1): [-K, -C, B, F0]
-        nominal = LinearSecondOrder.create(
-            np.eye(d), -coef[:, d : 2 * d], -coef[:, :d], coef[:, 2 * d : 2 * d + n], F0=coef[:, -1]
+        warnings.warn(
+            f"identify_linear: the fitted model is unstable (eigenvalue real part {worst:.3g} 1/s); "
+            f"clipped {what} to the nearest positive semidefinite matrix and refitted the rest "
+            f"(pass fixed={{'K': 0}} for a plant without a spring)",
+            stacklevel=2,
         )
-        if previous is not None:
-            moved = np.std(regressors @ (coef - previous).T, axis=0)
-            if np.all(moved <= rtol * np.std(regressors @ coef.T, axis=0)):
-                break
-        previous = coef
-    return nominal
+        fixed = {**fixed, **clip}
+        nominal = _fit_rounds(*args, fixed, nominal, interpolation, max_iterations, rtol)
+    worst, _ = _max_real_part(M, np.asarray(nominal.C), np.asarray(nominal.K))
+    raise DataError(
+        f"identify_linear: the fit is unstable (eigenvalue real part {worst:.3g} 1/s) and clipping the free K, C "
+        f"does not repair it; fix the stiffness, e.g. fixed={{'K': 0}}"
+    )
