@@ -33,9 +33,15 @@ import numpy as np
 from dtwin_jax.errors import DataError
 from dtwin_jax.kalman import kalman_filter, newton_log_variances, rts_smoother
 from dtwin_jax.linalg import expm, mass_solve
-from dtwin_jax.systems import UPSAMPLE, LinearSecondOrder, check_interpolation, real_array, upsample
+from dtwin_jax.systems import (
+    UPSAMPLE,
+    LinearSecondOrder,
+    check_interpolation,
+    real_array,
+    upsample,
+)
 
-__all__ = ["measured_index", "discretize", "state_smoother", "identify_linear"]
+__all__ = ["discretize", "identify_linear", "measured_index", "state_smoother"]
 
 _SEGMENT = 2000  # samples per piece in the noise fit (pieces run side by side)
 
@@ -268,12 +274,13 @@ def _check_fixed(fixed, d: int, n: int) -> dict[str, np.ndarray]:
     out = {}
     for name, value in fixed.items():
         a = real_array(f"fixed {name}", value)
+        given = a.shape
         if a.ndim == 0:
             a = float(a) * np.eye(d) if name in ("M", "C", "K") else np.full(shapes[name], float(a))
         elif name == "B" and a.ndim == 1 and n == 1:
             a = a[:, None]
         if a.shape != shapes[name]:
-            raise DataError(f"fixed {name} has shape {a.shape}, expected {shapes[name]} or a scalar")
+            raise DataError(f"fixed {name} has shape {given}, expected {shapes[name]} or a scalar")
         if not np.all(np.isfinite(a)):
             raise DataError(f"fixed {name} has a non-finite entry")
         out[name] = a
