@@ -16,6 +16,7 @@ import numpy as np
 
 from dtwin_jax import sampler
 from dtwin_jax.checks import residual_checks
+from dtwin_jax.collinearity import collinearity_checks, group_coefficients
 from dtwin_jax.data import Records, check_records, state_range
 from dtwin_jax.denoise import auto_half_width, kinematic_smoother, savgol_design_ok, savgol_states
 from dtwin_jax.errors import DataError
@@ -117,11 +118,16 @@ def update_input_output(
     names = nominal.state_names
     with stages("posterior and residual checks"):
         equations = posteriors(trace, [names[i] for i in nominal.regressed_index], "drift", lib.names, pip_threshold)
-        residual = _input_output_residuals(nominal, lib, xs, rec.u, rates, equations)
+        collinear = collinearity_checks(stats, equations)
+        # The residual of the twin's coefficients: a collinear group counted once.
+        coef = np.stack([group_coefficients(e, collinear[f"{e.state} collinearity"]["groups"], e.coefficients)
+                         if f"{e.state} collinearity" in collinear else e.coefficients for e in equations])
+        residual = _input_output_residuals(nominal, lib, xs, rec.u, rates, coef)
         checks = {
             e.state: residual_checks(residual[j], xs, nominal.velocity_index, names)
             for j, e in enumerate(equations)
         }
+        checks.update(collinear)
     if warnings:
         checks["preprocessing"] = {"ok": False, "warnings": warnings}
     result = UpdateResult(
@@ -229,10 +235,10 @@ def _autocorrelation_corrected(stats, nominal, lib, xs, u, rates) -> tuple[sampl
     return scaled, n_eff
 
 
-def _input_output_residuals(nominal, lib, xs, u, rates, equations) -> np.ndarray:
-    """Residuals ``(q, R, N)`` of every regressed equation under its selected terms."""
+def _input_output_residuals(nominal, lib, xs, u, rates, coef) -> np.ndarray:
+    """Residuals ``(q, R, N)`` of every regressed equation under coefficients ``coef (q, K)``."""
     R, N, m = xs.shape
     x, uu = jnp.asarray(xs).reshape(R * N, m), jnp.asarray(u).reshape(R * N, -1)
     Y = input_output_targets(nominal, x, uu, jnp.asarray(rates).reshape(R * N, m))
-    coef = jnp.asarray(np.stack([e.coefficients for e in equations]))
+    coef = jnp.asarray(coef)
     return np.asarray((Y - lib(x, uu) @ coef.T).T).reshape(-1, R, N)

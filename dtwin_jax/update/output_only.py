@@ -16,6 +16,7 @@ import numpy as np
 from dtwin_jax import aot, kramers_moyal, sampler, statespace
 from dtwin_jax.ahead import Ahead
 from dtwin_jax.checks import residual_checks
+from dtwin_jax.collinearity import collinearity_checks
 from dtwin_jax.data import check_records, state_range
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_library
@@ -141,6 +142,7 @@ def update_output_only(
             }
     for state, mg in zip(regressed, np.asarray(margin)):
         checks[f"{state} noise correction"] = margin_check(float(mg))
+    checks.update(collinearity_checks(drift_stats, drift))
     return UpdateResult(
         mode="output-only",
         nominal=nominal,

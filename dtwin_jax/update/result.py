@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import sampler
+from dtwin_jax.collinearity import group_coefficients
 from dtwin_jax.library import Library
 from dtwin_jax.posterior import EquationPosterior, format_coefficient
 from dtwin_jax.prediction import UpdatedTwin, diffusion_terms, refined_coefficients
@@ -69,11 +70,15 @@ class UpdateResult:
     @property
     def twin(self) -> UpdatedTwin:
         """The updated model at the posterior means of the selected terms (with the
-        discovered diffusion for an output-only update); :func:`predict.posterior_twins`
-        gives posterior draws of it."""
+        discovered diffusion for an output-only update); the terms of a reported collinearity
+        group enter as one (:func:`dtwin_jax.collinearity.group_coefficients`).
+        :func:`predict.posterior_twins` gives posterior draws of it."""
         drift = [e for e in self.equations if e.kind == "drift"]
         index = tuple(self.state_names.index(e.state) for e in drift)
-        coef = np.stack([e.coefficients for e in drift]) if drift else np.zeros((0, self.library.K))
+        # A group of terms the data cannot tell apart enters once (dtwin_jax.collinearity).
+        coef = [group_coefficients(e, self.checks[f"{e.state} collinearity"]["groups"], e.coefficients)
+                if f"{e.state} collinearity" in self.checks else e.coefficients for e in drift]
+        coef = np.stack(coef) if drift else np.zeros((0, self.library.K))
         if self.refinement is not None:
             coef = refined_coefficients(coef.shape, self.refinement["index"], self.refinement["mean"])
         diffusion = [e for e in self.equations if e.kind == "diffusion"]
