@@ -12,7 +12,7 @@ import numpy as np
 
 from dtwin_jax.errors import DataError
 
-__all__ = ["COSINE_MIN", "PIP_MIN", "collinear_groups", "collinearity_checks", "group_coefficients"]
+__all__ = ["COSINE_MIN", "PIP_MIN", "collinear_groups", "collinearity_checks", "group_coefficients", "twin_coefficients"]
 
 # Uncentred cosine (the library has a constant column '1': centring would hide a column that
 # is a constant plus a small ripple). 1 - 1e-4 leaves a distinguishing component of
@@ -134,3 +134,14 @@ def group_coefficients(equation, groups, coefficients) -> np.ndarray:
         anyin = gamma[:, idx].any(axis=1)
         coef[idx] = theta[anyin][:, idx].mean(axis=0) if anyin.mean() > equation.pip_threshold else 0.0
     return coef
+
+
+def twin_coefficients(equations, checks) -> np.ndarray:
+    """The twin's coefficients ``(q, K)`` of drift ``equations``: each one's posterior means
+    of its selected terms, a collinearity group in ``checks`` entering once
+    (:func:`group_coefficients`)."""
+    def one(e):
+        check = checks.get(f"{e.state} collinearity")
+        return e.coefficients if check is None else group_coefficients(e, check["groups"], e.coefficients)
+
+    return np.stack([one(e) for e in equations])

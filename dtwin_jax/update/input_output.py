@@ -16,7 +16,7 @@ import numpy as np
 
 from dtwin_jax import sampler
 from dtwin_jax.checks import residual_checks
-from dtwin_jax.collinearity import collinearity_checks, group_coefficients
+from dtwin_jax.collinearity import collinearity_checks, twin_coefficients
 from dtwin_jax.data import Records, check_records, state_range
 from dtwin_jax.denoise import auto_half_width, kinematic_smoother, savgol_design_ok, savgol_states
 from dtwin_jax.errors import DataError
@@ -120,9 +120,7 @@ def update_input_output(
         equations = posteriors(trace, [names[i] for i in nominal.regressed_index], "drift", lib.names, pip_threshold)
         collinear = collinearity_checks(stats, equations)
         # The residual of the twin's coefficients: a collinear group counted once.
-        coef = np.stack([group_coefficients(e, collinear[f"{e.state} collinearity"]["groups"], e.coefficients)
-                         if f"{e.state} collinearity" in collinear else e.coefficients for e in equations])
-        residual = _input_output_residuals(nominal, lib, xs, rec.u, rates, coef)
+        residual = _input_output_residuals(nominal, lib, xs, rec.u, rates, twin_coefficients(equations, collinear))
         checks = {
             e.state: residual_checks(residual[j], xs, nominal.velocity_index, names)
             for j, e in enumerate(equations)

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import sampler
-from dtwin_jax.collinearity import group_coefficients
+from dtwin_jax.collinearity import twin_coefficients
 from dtwin_jax.library import Library
 from dtwin_jax.posterior import EquationPosterior, format_coefficient
 from dtwin_jax.prediction import UpdatedTwin, diffusion_terms, refined_coefficients
@@ -75,10 +75,7 @@ class UpdateResult:
         :func:`predict.posterior_twins` gives posterior draws of it."""
         drift = [e for e in self.equations if e.kind == "drift"]
         index = tuple(self.state_names.index(e.state) for e in drift)
-        # A group of terms the data cannot tell apart enters once (dtwin_jax.collinearity).
-        coef = [group_coefficients(e, self.checks[f"{e.state} collinearity"]["groups"], e.coefficients)
-                if f"{e.state} collinearity" in self.checks else e.coefficients for e in drift]
-        coef = np.stack(coef) if drift else np.zeros((0, self.library.K))
+        coef = twin_coefficients(drift, self.checks) if drift else np.zeros((0, self.library.K))
         if self.refinement is not None:
             coef = refined_coefficients(coef.shape, self.refinement["index"], self.refinement["mean"])
         diffusion = [e for e in self.equations if e.kind == "diffusion"]
