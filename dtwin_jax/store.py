@@ -175,6 +175,10 @@ def _current(path: Path, replace: bool):
     if not os.path.lexists(path / "twin.json"):
         return 0, 0, None
     manifest = twin_folder.read_json(path / "twin.json")
+    if not isinstance(manifest, dict):
+        if replace:
+            return 2, 0, None
+        raise DataError(f"'{path / 'twin.json'}' is not a dtwin-jax twin (not a JSON object)")
     if manifest.get("version") == 1:
         return 1, 0, None
     try:
