@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from dtwin_jax.errors import DataError
+from dtwin_jax.resources import check_file_arrays
 from dtwin_jax.systems import LinearSecondOrder, dtype_word
 from dtwin_jax.twin_folder import umask
 
@@ -107,11 +108,7 @@ def load_measurements(path) -> dict:
         raise DataError(f"measurement file '{path}' does not exist")
     suffix = path.suffix.lower()
     if suffix == ".npz":
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                data = {k: np.asarray(z[k]) for k in z.files}
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-            raise DataError(f"measurement file '{path}' is not a readable .npz: {e}") from None
+        data = _read_npz(path, "measurement file")
     elif suffix == ".csv":
         data = _read_csv(path)
     else:
@@ -141,17 +138,37 @@ def load_measurements(path) -> dict:
     return out
 
 
+def _read_npz(path: Path, what: str) -> dict:
+    """Every array of an ``.npz`` (no pickles), after the sizes its headers declare are
+    checked against the memory available: a small file can declare a huge array."""
+    unreadable = (OSError, ValueError, EOFError, zipfile.BadZipFile)
+    try:
+        nbytes = 0
+        with zipfile.ZipFile(path) as zf:
+            for info in zf.infolist():
+                with zf.open(info) as f:
+                    version = np.lib.format.read_magic(f)
+                    read = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                        np.lib.format.read_array_header_2_0
+                    shape, _, dtype = read(f)
+                nbytes += math.prod(shape) * dtype.itemsize
+    except unreadable as e:
+        raise DataError(f"{what} '{path}' is not a readable .npz: {e}") from None
+    check_file_arrays(nbytes, f"{what} '{path}'")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: np.asarray(z[k]) for k in z.files}
+    except unreadable as e:
+        raise DataError(f"{what} '{path}' is not a readable .npz: {e}") from None
+
+
 def load_prediction_input(path, nominal: LinearSecondOrder, *, needs_input: bool) -> dict:
     """Read ``NEW.npz`` of ``dtwin-jax predict``: ``t (N,)`` increasing, ``x0 (m,)``, and
     ``u (N, n)`` when ``needs_input`` (an input-output twin). Returns float arrays."""
     path = Path(path)
     if not path.exists():
         raise DataError(f"input file '{path}' does not exist")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: np.asarray(z[k]) for k in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-        raise DataError(f"input file '{path}' is not a readable .npz: {e}") from None
+    data = _read_npz(path, "input file")
     keys = ("t", "x0", "u") if needs_input else ("t", "x0")
     for key in keys:
         if key not in data:

@@ -17,7 +17,7 @@ from dtwin_jax.errors import DataError
 
 __all__ = [
     "MAX_TERMS", "available_bytes", "count_terms", "check_terms", "check_num_inputs", "check_nominal", "check_update", "check_sampler",
-    "check_design", "check_prediction", "check_posterior_draws",
+    "check_design", "check_prediction", "check_posterior_draws", "check_file_arrays",
 ]
 
 # A library this large is a typo (poly:40), not a model: its Gram alone is 800 MB per equation.
@@ -201,3 +201,9 @@ def check_prediction(draws: int, samples: int, states: int, *, option: str = "nu
     need = 4 * draws * samples * states * _F64
     _require(need, f"{option} {draws}",
              f"the {what} ({_count(draws)} {unit} x {_count(samples)} samples x {states} states)")
+
+
+def check_file_arrays(nbytes: int, where: str) -> None:
+    """A file's arrays (``nbytes`` as their headers declare them) before they are read: the
+    reader holds them and a float64 copy or two."""
+    _require(3 * nbytes, where, "its arrays")

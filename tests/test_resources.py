@@ -1,6 +1,7 @@
 """Issue 25: oversize requests are refused at once in one line, before anything is allocated
 (:mod:`dtwin_jax.resources`); Ctrl-C, out of memory and internal errors are one line too."""
 
+import io
 import json
 import os
 import re
@@ -9,6 +10,7 @@ import signal
 import subprocess
 import sys
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +36,15 @@ def _data(N=400, states=2, seed=0):
     return {"t": t, "x": x, "u": rng.normal(size=(N, states // 2))}
 
 
+def _bomb(path):
+    """An .npz of a few hundred bytes whose headers declare 1e10 samples of t and x (2 states)."""
+    with zipfile.ZipFile(path, "w") as zf:
+        for name, shape in (("t", (10**10,)), ("x", (10**10, 2))):
+            header = io.BytesIO()
+            np.lib.format.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": shape})
+            zf.writestr(f"{name}.npy", header.getvalue() + bytes(64))
+
+
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory):
     """Data and nominal files, and a tiny twin saved by discover --save-twin."""
@@ -46,6 +57,7 @@ def folder(tmp_path_factory):
     np.savez(tmp / "new.npz", t=np.arange(400) * 1e-3, x0=np.array([0.1, 0.0]), u=np.zeros((400, 1)))
     assert main(["discover", str(tmp / "data.npz"), "--nominal", str(tmp / "nominal.toml"), "--library",
                  "poly:3,input", "--save-twin", str(tmp / "twin"), *TINY]) == 0
+    _bomb(tmp / "bomb.npz")
     bad = tmp / "bad-twin"
     shutil.copytree(tmp / "twin", bad)
     _edit_header(bad, lambda h: h.update(num_inputs=1e8))
@@ -85,6 +97,8 @@ OVERSIZE = {
     "twin num_inputs": (["predict", "bad-twin", "--input", "new.npz"], "header.json' has num_inputs 100000000.0; expected 0 or 1 (the nominal B's columns)"),
     "predict draws": (["predict", "twin", "--input", "new.npz", "--draws", "1000000000"],
                       "--draws 1000000000 needs about"),
+    "a small file declaring huge arrays": (["discover", "bomb.npz", "--nominal", "nominal.toml"],
+                                           "measurement file 'bomb.npz' needs about 671 GiB for its arrays"),
 }
 
 
