@@ -192,6 +192,8 @@ def load_prediction_input(path, nominal: LinearSecondOrder, *, needs_input: bool
 
 def _read_csv(path: Path) -> dict:
     try:
+        # The text, its decoded copy and its lines each take about the file's size.
+        check_file_arrays(path.stat().st_size, f"measurement file '{path}'")
         raw = path.read_bytes()
     except OSError as e:
         raise DataError(f"measurement file '{path}' cannot be read: {e.strerror}") from None
