@@ -11,6 +11,7 @@ import pytest
 from dtwin_jax import systems
 from dtwin_jax.errors import DataError
 from dtwin_jax.measurement import measure
+from dtwin_jax.store import load_twin, save_twin
 from dtwin_jax.systems import HIGH_BAND_THRESHOLD, choose_interpolation, high_band_fraction, resolve_interpolation
 from dtwin_jax.update import SamplerSettings, update_input_output
 
@@ -107,7 +108,7 @@ def _example1_update(**kwargs):
                                settings=SHORT, **kwargs)
 
 
-def test_default_update_on_example1_chooses_held_by_spectrum():
+def test_default_update_on_example1_chooses_held_by_spectrum(tmp_path):
     res = _example1_update()
     assert res.preprocessing["input_interpolation"] == "held"
     assert res.preprocessing["input_interpolation_chosen_by"] == "spectrum"
@@ -118,3 +119,8 @@ def test_default_update_on_example1_chooses_held_by_spectrum():
     bl = _example1_update(interpolation="bandlimited")
     assert bl.preprocessing["input_interpolation"] == "bandlimited"
     assert bl.preprocessing["input_interpolation_chosen_by"] == "user"
+    # A saved twin keeps both keys, and its prediction uses the chosen interpolation.
+    loaded = load_twin(save_twin(res, tmp_path / "twin"))
+    assert loaded.preprocessing["input_interpolation"] == "held"
+    assert loaded.preprocessing["input_interpolation_chosen_by"] == "spectrum"
+    assert load_twin(save_twin(bl, tmp_path / "bl")).twin.interpolation == "bandlimited"
