@@ -12,7 +12,12 @@ from dtwin_jax import systems
 from dtwin_jax.errors import DataError
 from dtwin_jax.measurement import measure
 from dtwin_jax.store import load_twin, save_twin
-from dtwin_jax.systems import HIGH_BAND_THRESHOLD, choose_interpolation, high_band_fraction, resolve_interpolation
+from dtwin_jax.systems import (
+    HIGH_BAND_THRESHOLD,
+    choose_interpolation,
+    high_band_fraction,
+    resolve_interpolation,
+)
 from dtwin_jax.update import SamplerSettings, update_input_output
 
 N = 4000
