@@ -261,7 +261,7 @@ def _update(args, mode, nominal, data, *, library, diffusion_library=None, previ
 
     return update_input_output(nominal, data["t"], data["x"], data["u"], data.get("xdot"),
                                x_names=data.get("x_names"), xdot_names=data.get("xdot_names"),
-                               interpolation=data.get("u_interpolation", "held"),
+                               interpolation=data.get("u_interpolation", "auto"),
                                library=library, smoothing=args.smoothing, refine=getattr(args, "refine", False),
                                **common)
 

@@ -38,6 +38,7 @@ from dtwin_jax.systems import (
     LinearSecondOrder,
     check_interpolation,
     real_array,
+    resolve_interpolation,
     upsample,
 )
 
@@ -352,7 +353,7 @@ def identify_linear(
     d: int = 1,
     xdot=None,
     xdot_names=None,
-    interpolation: str = "held",
+    interpolation: str = "auto",
     max_iterations: int = 30,
     rtol: float = 1e-4,
     fixed: dict | None = None,
@@ -386,7 +387,9 @@ def identify_linear(
     - `u`: `(.., N, n)` inputs (force units when `M` is fixed).
     - `d`: degrees of freedom.
     - `xdot`, `xdot_names`: measured rates, or None.
-    - `interpolation`: the input between samples, `"held"`, `"linear"` or `"bandlimited"`.
+    - `interpolation`: the input between samples, `"held"`, `"linear"`, `"bandlimited"`, or
+      `"auto"`: held or band-limited from the input's spectrum
+      (:func:`dtwin_jax.systems.choose_interpolation`).
     - `max_iterations`, `rtol`: the rounds' limit and stopping tolerance.
     - `fixed`: known parameters, `{name: value}` with names among `M (d, d)`, `C (d, d)`,
       `K (d, d)`, `B (d, n)`, `F0 (d,)` (a scalar `M`, `C`, `K` is that times the
@@ -418,6 +421,7 @@ def identify_linear(
     rec = check_records(t, x, u, xdot)
     if rec.x.shape[-1] != len(x_index):
         raise DataError(f"'x' has {rec.x.shape[-1]} columns but x_names names {len(x_index)}")
+    interpolation, _ = resolve_interpolation(interpolation, rec.u)
     args = (rec, x_index, xdot_index, d, n, M)
     nominal = _fit_rounds(*args, fixed, nominal, interpolation, max_iterations, rtol)
     for _ in range(3):  # clip K and C, then again if the refit exposes the other one

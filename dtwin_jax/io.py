@@ -97,7 +97,7 @@ def write_nominal(path, nominal: LinearSecondOrder) -> None:
 
 def load_measurements(path) -> dict:
     """Read ``t``, ``x`` and optional ``u``, ``xdot``, ``x_names``, ``xdot_names`` and
-    ``u_interpolation`` from ``.npz`` or ``.csv``.
+    ``u_interpolation`` (absent: chosen from the input's spectrum) from ``.npz`` or ``.csv``.
 
     A CSV file holds one record with header ``t,`` then measured state names (all of
     ``x1..xm`` or a subset, which become ``x_names``) ``[,u1..un]``; columns ``xdot1..``
@@ -133,7 +133,7 @@ def load_measurements(path) -> dict:
     if "u_interpolation" in data:
         value = np.asarray(data["u_interpolation"])
         if value.shape != () or not np.issubdtype(value.dtype, np.str_):
-            raise DataError(f"'u_interpolation' in '{path}' must be one string (held, linear or bandlimited)")
+            raise DataError(f"'u_interpolation' in '{path}' must be one string (held, linear, bandlimited or auto)")
         out["u_interpolation"] = str(value)
     return out
 

@@ -25,7 +25,7 @@ from dtwin_jax.library import Library, check_columns
 from dtwin_jax.measurement import smooth
 from dtwin_jax.progress import Stages
 from dtwin_jax.resources import check_update
-from dtwin_jax.systems import LinearSecondOrder, check_interpolation
+from dtwin_jax.systems import LinearSecondOrder, check_interpolation, resolve_interpolation
 from dtwin_jax.targets import input_output_targets, smoothed_input_output_stats
 from dtwin_jax.update.lifecycle import check_previous, check_repeat, updated_history, with_previous
 from dtwin_jax.update.output_error import refine_output_error
@@ -44,7 +44,7 @@ def update_input_output(
     *,
     x_names=None,
     xdot_names=None,
-    interpolation: str = "held",
+    interpolation: str = "auto",
     library: str | Library | None = None,
     smoothing="auto",
     pip_threshold: float = 0.5,
@@ -59,8 +59,11 @@ def update_input_output(
     """Discover the perturbation of ``nominal`` from input-output measurements.
 
     ``t (N,)`` s; ``x (N, p)`` or ``(R, N, p)`` measured states, named ``x_names`` (default
-    all ``m`` in order); ``u (N, n)`` or ``(R, N, n)`` measured inputs, held over each step
-    or interpolated linearly (``interpolation``); ``xdot`` measured rates of the states
+    all ``m`` in order); ``u (N, n)`` or ``(R, N, n)`` measured inputs, between samples as
+    ``interpolation`` (``"held"``, ``"linear"``, ``"bandlimited"``, or ``"auto"``, chosen
+    from the input's spectrum by :func:`dtwin_jax.systems.choose_interpolation`; the value
+    used is ``preprocessing["input_interpolation"]``, and ``"input_interpolation_chosen_by"``
+    says ``"spectrum"`` or ``"user"``); ``xdot`` measured rates of the states
     ``xdot_names`` (accelerometers), or None. With every state measured the rates come from
     the kinematic smoother (rates measured) or a Savitzky-Golay derivative; with some states
     unmeasured, or when the Savitzky-Golay design cannot be met (a few samples per period), or
@@ -75,12 +78,14 @@ def update_input_output(
     state weighed by its smoothing residual): a sharper twin for long free runs.
     """
     start = time.perf_counter()
-    check_interpolation(interpolation)
+    if interpolation != "auto":
+        check_interpolation(interpolation)  # refuse a bad name before the data checks
     x_index = measured_index(x_names, nominal)
     xdot_index = measured_index(xdot_names, nominal, "xdot_names") if xdot is not None else ()
     rec = check_records(t, x, u, xdot, nominal, x_columns=len(x_index), xdot_columns=len(xdot_index) or None)
     if rec.u is None:
         raise DataError("input-output update needs measured inputs 'u'")
+    interpolation, interpolation_chosen_by = resolve_interpolation(interpolation, rec.u)
     lib = resolve_library(library, nominal, nominal.n)
     check_previous(previous, "input-output", nominal, lib, forget)
     check_repeat(previous, rec, allow_repeat)
@@ -143,6 +148,7 @@ def update_input_output(
             "measured_states": [names[i] for i in x_index],
             "measured_rates": [names[i] for i in xdot_index],
             "input_interpolation": interpolation,
+            "input_interpolation_chosen_by": interpolation_chosen_by,
             "input_noise_std": None if noise_var is None else np.sqrt(noise_var).tolist(),
             "samples": int(R * N),
             "state_range": state_range(xs, previous),
