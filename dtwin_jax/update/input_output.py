@@ -31,6 +31,7 @@ from dtwin_jax.update.lifecycle import check_previous, check_repeat, updated_his
 from dtwin_jax.update.output_error import refine_output_error
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 from dtwin_jax.update.sampling import _sample_equations, numpy_stats, posteriors, resolve_library
+from dtwin_jax.weak_form import weak_input_output_stats
 
 __all__ = ["update_input_output", "denoise_states"]
 
@@ -90,6 +91,8 @@ def update_input_output(
     hw = auto_half_width(nominal, rec.dt, rec.t.size)
     every = tuple(range(nominal.m))
     partial = x_index != every or (rec.xdot is not None and xdot_index != every)
+    if smoothing == "weak" and (partial or rec.xdot is not None):
+        raise DataError("smoothing='weak' needs every state measured and no measured rates")
     warnings = []
     if smoothing == "auto" and rec.xdot is None and not savgol_design_ok(nominal, rec.dt):
         warnings.append(
@@ -110,6 +113,9 @@ def update_input_output(
         # The same jitted chain as the batched studies (dtwin_jax.studies).
         stats, noise_var = smoothed_input_output_stats(nominal, lib, xs, rec.u, rates, hw, correct_inputs=correct)
         n_eff = None
+        if smoothing == "weak":  # the Savitzky-Golay rates above serve the residual checks only
+            stats, weak_info = weak_input_output_stats(nominal, lib, rec.t, rec.x, rec.u, interpolation=interpolation)
+            smoothing_info = {"states": smoothing_info, "regression": weak_info}
         if rate_source == "state-space smoother":
             stats, n_eff = _autocorrelation_corrected(stats, nominal, lib, xs, rec.u, rates)
         stats = jax.block_until_ready(with_previous(stats, "drift", previous, forget))
@@ -179,6 +185,10 @@ def _states_and_rates(rec, nominal, smoothing, partial, x_index, xdot_index, int
             nominal, rec.dt, rec.x, x_index, rec.u, rec.xdot, xdot_index, interpolation=interpolation
         )
         return xs, rates, info, "state-space smoother", False
+    if smoothing == "weak":  # raw states regress; these smoothed ones feed the residual checks
+        xs, info = denoise_states(rec, nominal, "savgol")
+        rates = np.asarray(smooth(rec.x, hw, order=4, deriv=1, dt=rec.dt))
+        return xs, rates, info, "none: weak form (residual checks on Savitzky-Golay rates)", False
     xs, info = denoise_states(rec, nominal, smoothing)
     if rec.xdot is not None:
         return xs, rec.xdot, info, "measured", smoothing is not None
