@@ -26,7 +26,7 @@ from dtwin_jax.library import Library
 from dtwin_jax.measurement import highest_natural_frequency_hz
 from dtwin_jax.systems import LinearSecondOrder
 
-__all__ = ["weak_windows", "window_quadrature", "weak_stats", "weak_input_output_stats"]
+__all__ = ["weak_windows", "weak_window_fits", "window_quadrature", "weak_stats", "weak_input_output_stats"]
 
 _POWER = 6
 
@@ -41,6 +41,14 @@ def weak_windows(nominal: LinearSecondOrder, dt: float, num_samples: int) -> tup
     width = int(round(1.0 / (f_hz * dt))) if f_hz > 0 else max(16, num_samples // 100)
     width = int(min(max(width, 2 * _POWER + 3), num_samples))
     return width, max(1, width // 8)
+
+
+def weak_window_fits(nominal: LinearSecondOrder, dt: float, num_samples: int) -> bool:
+    """Whether the default window (:func:`weak_windows`) spans enough samples for the test
+    functions and leaves at least two windows in a record of ``num_samples``."""
+    f_hz = highest_natural_frequency_hz(nominal)
+    width = 1.0 / (f_hz * dt) if f_hz > 0 else max(16, num_samples // 100)
+    return 2 * _POWER + 3 <= width and width + width // 8 <= num_samples
 
 
 def window_quadrature(num_samples: int, dt: float, width: int, stride: int, power: int = _POWER,

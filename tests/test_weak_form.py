@@ -65,3 +65,15 @@ def test_weak_route_duffing_at_5_percent_noise():
         assert [eq.names[i] for i in np.flatnonzero(eq.selected)] == ["x1**3"]
         errors.append(abs(eq.mean[k] + 1e5) / 1e5)
     assert np.median(errors) < 0.012
+
+
+def test_default_route_without_rates_is_the_weak_form():
+    ex = systems.example1()
+    sim = systems.simulate_example(ex, jax.random.key(0), duration=0.5)
+    short = SamplerSettings(num_chains=1, num_draws=50, num_burnin=10)
+    args = (ex.system.nominal, sim["t"], sim["x"], sim["u"])
+    res = update_input_output(*args, library="poly:2,input", settings=short)
+    assert res.preprocessing["smoothing"] == "weak"
+    assert res.preprocessing["state_smoothing"]["regression"]["method"] == "weak-form"
+    res = update_input_output(*args, library="poly:2,input", settings=short, smoothing="savgol")
+    assert res.preprocessing["rates"].startswith("savitzky-golay derivative")
