@@ -58,7 +58,7 @@ def _nonneg_int(text: str) -> int:
 
 
 def _smoothing(text: str):
-    if text in ("auto", "none", "statespace", "savgol"):
+    if text in ("auto", "none", "statespace", "savgol", "weak"):
         return None if text == "none" else text
     return _positive_int(text)
 
@@ -70,9 +70,10 @@ def _add_sampler_args(p: argparse.ArgumentParser, draws: int, burn_in: int) -> N
     p.add_argument("--burn-in", type=_nonneg_int, default=burn_in, help=f"discarded sweeps per chain (default {burn_in})")
     p.add_argument("--pip-threshold", type=float, default=0.5, help="select terms with PIP above this (default 0.5)")
     p.add_argument("--smoothing", type=_smoothing, default="auto",
-                   help="state denoising: auto (kinematic smoother with measured rates, else Savitzky-Golay matched "
-                        "to the sampling rate, or the state-space smoother when states are missing or the sampling "
-                        "is too slow for it), statespace, savgol, none, or a Savitzky-Golay half width")
+                   help="state denoising: auto (kinematic smoother with measured rates; the weak form, nothing "
+                        "differentiated, with every state measured and no rates; the state-space smoother when states "
+                        "are missing or the sampling is too slow), weak, statespace, savgol, none, or a Savitzky-Golay "
+                        "half width")
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
