@@ -398,6 +398,23 @@ def check_columns(L, names, *, rtol: float = 1e-10) -> None:
     - `names`: the `K` term names.
     - `rtol`: duplicate tolerance on unit-RMS columns.
     """
+    names = tuple(names)
+    zero, pairs = degenerate_columns(L, names, rtol=rtol)
+    if zero:
+        raise DataError(_columns([names[i] for i in zero], "are all zero on these data", "is all zero on these data"))
+    if pairs:
+        text = [f"{names[j]!r} and {names[i]!r}" for i, j in pairs]
+        more = f" (also {'; '.join(text[1:4])}{'; ...' if len(text) > 4 else ''})" if len(text) > 1 else ""
+        raise DataError(f"library columns {text[0]} are duplicates on these data{more}")
+
+
+def degenerate_columns(L, names, *, rtol: float = 1e-10) -> tuple[list[int], list[tuple[int, int]]]:
+    """The columns of `L (N, K)` that cannot be identified on these data: all-zero columns,
+    and pairs `(i, j)`, `i < j`, equal up to a nonzero factor (as :func:`check_columns`
+    defines it). Raises `DataError` for a shape mismatch, no rows or non-finite entries.
+
+    **Returns:** `(zero, pairs)`: indices of the all-zero columns, and the duplicate pairs
+    ordered by `j`."""
     L = np.asarray(L, dtype=np.float64)
     names = tuple(names)
     if L.ndim != 2 or L.shape[1] != len(names):
@@ -409,30 +426,53 @@ def check_columns(L, names, *, rtol: float = 1e-10) -> None:
     if bad.size:
         raise DataError(_columns([names[i] for i in bad], "have non-finite values", "has non-finite values"))
     maxabs = np.maximum(L.max(axis=0), -L.min(axis=0))  # no |L| temporary
-    zero = np.flatnonzero(maxabs == 0.0)
-    if zero.size:
-        raise DataError(_columns([names[i] for i in zero], "are all zero on these data", "is all zero on these data"))
-
+    zero = np.flatnonzero(maxabs == 0.0).tolist()
+    live = np.flatnonzero(maxabs > 0.0)
     # Cosine similarity of columns, accumulated in row chunks of L / maxabs (no overflow,
     # no full copy). max|c_i -+ c_j| <= rtol implies 1 - |cos| <= rtol**2 / 2, so the
     # Gram only short-lists candidates (with slack for its rounding); each is then
     # confirmed with the exact max-abs test.
-    gram = np.zeros((k, k))
-    chunk = max(1, 2**20 // k)
+    Ll, scale = L[:, live], maxabs[live]
+    kl = live.size
+    gram = np.zeros((kl, kl))
+    chunk = max(1, 2**20 // max(kl, 1))
     for start in range(0, n, chunk):
-        block = L[start : start + chunk] / maxabs
+        block = Ll[start : start + chunk] / scale
         gram += block.T @ block
     norm = np.sqrt(np.diag(gram))
     cos = gram / np.outer(norm, norm)
     slack = max(rtol**2, 1e-9)
     cand_i, cand_j = np.nonzero(np.triu(np.abs(cos) >= 1.0 - slack, k=1))
-    rms = norm / np.sqrt(n) * maxabs
+    rms = norm / np.sqrt(n) * scale
     pairs = []
     for i, j in sorted(zip(cand_i.tolist(), cand_j.tolist()), key=lambda p: (p[1], p[0])):
-        ci, cj = L[:, i] / rms[i], L[:, j] / rms[j]
-        s = np.sign(cos[i, j])
-        if np.max(np.abs(ci - s * cj)) <= rtol:
-            pairs.append(f"{names[j]!r} and {names[i]!r}")
-    if pairs:
-        more = f" (also {'; '.join(pairs[1:4])}{'; ...' if len(pairs) > 4 else ''})" if len(pairs) > 1 else ""
-        raise DataError(f"library columns {pairs[0]} are duplicates on these data{more}")
+        ci, cj = Ll[:, i] / rms[i], Ll[:, j] / rms[j]
+        if np.max(np.abs(ci - np.sign(cos[i, j]) * cj)) <= rtol:
+            pairs.append((int(live[i]), int(live[j])))
+    return zero, pairs
+
+
+def without_degenerate_columns(lib: Library, L) -> tuple[Library, list[str]]:
+    """`lib` without the columns these data cannot identify (:func:`degenerate_columns`):
+    all-zero columns and, of each duplicate pair, the later term (the simpler term, listed
+    first by the families, stays: `1` over `sign(x1)` when `x1 > 0` throughout).
+
+    **Arguments:**
+
+    - `lib`: the library; `L`: its design matrix on the data, `(N, K)`.
+
+    **Returns:** the reduced library (spec `terms:...` of the kept names, so that it saves
+    and reloads) and one text per dropped term, e.g. `"sign(x1) (= 1)"`.
+    """
+    zero, pairs = degenerate_columns(L, lib.names)
+    drop = {k: "all zero" for k in zero}
+    for i, j in pairs:
+        if i not in drop:
+            drop.setdefault(j, f"= {lib.names[i]}")
+    if not drop:
+        return lib, []
+    kept = [name for k, name in enumerate(lib.names) if k not in drop]
+    if not kept:
+        raise DataError("every library column is all zero or a duplicate on these data")
+    reduced = parse_library("terms:" + ";".join(kept), lib.num_states, lib.num_inputs)
+    return reduced, [f"{lib.names[k]} ({why})" for k, why in sorted(drop.items())]

@@ -34,3 +34,24 @@ def test_each_sample_obeys_the_equation_of_motion():
     rhs = (u[:-1] - p.offset - p.coulomb * np.sign(v[:-1])) * dt - p.viscous * np.diff(q)
     assert keep.sum() > 3000
     assert np.max(np.abs(lhs - rhs)[keep]) < 1e-6 * np.max(np.abs(u)) * dt
+
+
+def test_the_default_library_drops_what_an_axis_that_never_crosses_zero_cannot_identify():
+    # Before: the default route was refused ('sign(x1)' and '1' are duplicates on these
+    # data). The default library now drops those columns, says which, and the update runs.
+    from dtwin_jax import SamplerSettings, update_input_output
+    from dtwin_jax.library import DEFAULT_LIBRARY, parse_library
+
+    p = StageParams()
+    d = positioning_stage(jax.random.key(0), duration=2.0, params=p)
+    result = update_input_output(stage_nominal(p), d["t"], d["x"], d["u"], x_names=["x1"],
+                                 settings=SamplerSettings(num_chains=1, num_draws=200, num_burnin=100))
+    full = parse_library(DEFAULT_LIBRARY, 2, 1).names
+    dropped = set(full) - set(result.library.names)
+    assert dropped == {"sign(x1)", "Abs(x1)", "x1*Abs(x1)", "x2*Abs(x1)"}
+    assert result.library.names == tuple(n for n in full if n not in dropped)  # order kept
+    warning = next(w for w in result.warnings() if "default library" in w)
+    assert "sign(x1) (= 1)" in warning and "x2*Abs(x1) (= x1*x2)" in warning
+    # An explicit library is the user's: still refused with one line.
+    with np.testing.assert_raises_regex(dtwin_jax.DataError, "duplicates on these data"):
+        update_input_output(stage_nominal(p), d["t"], d["x"], d["u"], x_names=["x1"], library=DEFAULT_LIBRARY)

@@ -21,7 +21,7 @@ from dtwin_jax.data import Records, check_records, state_range
 from dtwin_jax.denoise import auto_half_width, kinematic_smoother, savgol_design_ok, savgol_states
 from dtwin_jax.errors import DataError
 from dtwin_jax.estimate import measured_index, state_smoother
-from dtwin_jax.library import Library, check_columns
+from dtwin_jax.library import Library, check_columns, without_degenerate_columns
 from dtwin_jax.measurement import smooth
 from dtwin_jax.progress import Stages
 from dtwin_jax.resources import check_update
@@ -89,7 +89,10 @@ def update_input_output(
     if rec.u is None:
         raise DataError("input-output update needs measured inputs 'u'")
     interpolation, interpolation_chosen_by = resolve_interpolation(interpolation, rec.u)
-    lib = resolve_library(library, nominal, nominal.n)
+    # The default library adapts to the data (columns these data cannot identify dropped,
+    # below); a re-update keeps the library of the update it continues.
+    adapt = library is None and previous is None
+    lib = previous.library if library is None and previous is not None else resolve_library(library, nominal, nominal.n)
     check_previous(previous, "input-output", nominal, lib, forget)
     check_repeat(previous, rec, allow_repeat)
     s = settings
@@ -118,7 +121,15 @@ def update_input_output(
             rec, nominal, smoothing, partial, x_index, xdot_index, interpolation, hw)
     R, N, m = xs.shape
     with stages("library statistics"):
-        check_columns(np.asarray(lib(xs.reshape(R * N, m), rec.u.reshape(R * N, -1))), lib.names)
+        L = np.asarray(lib(xs.reshape(R * N, m), rec.u.reshape(R * N, -1)))
+        if adapt:
+            lib, dropped = without_degenerate_columns(lib, L)
+            if dropped:
+                warnings.append(f"default library: {len(dropped)} terms these data cannot tell from others dropped: "
+                                + ", ".join(dropped))
+        else:
+            check_columns(L, lib.names)
+        del L
         # The same jitted chain as the batched studies (dtwin_jax.studies).
         stats, noise_var = smoothed_input_output_stats(nominal, lib, xs, rec.u, rates, hw, correct_inputs=correct)
         n_eff = None
