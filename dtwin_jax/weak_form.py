@@ -31,24 +31,37 @@ __all__ = ["weak_windows", "weak_window_fits", "window_quadrature", "weak_stats"
 _POWER = 6
 
 
+# The dense quadrature matrices (3 x windows x samples) the default route may build; past
+# this the automatic choice keeps the Savitzky-Golay route (a banded form would lift it).
+_MAX_QUADRATURE_BYTES = 1 << 30
+
+
+def _period_samples(nominal: LinearSecondOrder, dt: float, num_samples: int) -> float:
+    """One period of the nominal's fastest mode in samples (1 % of the record without stiffness)."""
+    f_hz = highest_natural_frequency_hz(nominal)
+    return 1.0 / (f_hz * dt) if f_hz > 0 else max(16, num_samples // 100)
+
+
 def weak_windows(nominal: LinearSecondOrder, dt: float, num_samples: int) -> tuple[int, int]:
     """Default window ``(width, stride)`` in samples: one period of the nominal's fastest
     mode (a 1 % of the record without stiffness), moved by an eighth of it.
 
     ``dt`` s; ``num_samples`` per record. The width is clipped to the record.
     """
-    f_hz = highest_natural_frequency_hz(nominal)
-    width = int(round(1.0 / (f_hz * dt))) if f_hz > 0 else max(16, num_samples // 100)
+    width = int(round(_period_samples(nominal, dt, num_samples)))
     width = int(min(max(width, 2 * _POWER + 3), num_samples))
     return width, max(1, width // 8)
 
 
 def weak_window_fits(nominal: LinearSecondOrder, dt: float, num_samples: int) -> bool:
     """Whether the default window (:func:`weak_windows`) spans enough samples for the test
-    functions and leaves at least two windows in a record of ``num_samples``."""
-    f_hz = highest_natural_frequency_hz(nominal)
-    width = 1.0 / (f_hz * dt) if f_hz > 0 else max(16, num_samples // 100)
-    return 2 * _POWER + 3 <= width and width + width // 8 <= num_samples
+    functions, leaves at least two windows in a record of ``num_samples``, and its dense
+    quadrature matrices stay under 1 GiB."""
+    width = _period_samples(nominal, dt, num_samples)
+    if not (2 * _POWER + 3 <= width and width + width // 8 <= num_samples):
+        return False
+    windows = num_samples // max(1, int(round(width)) // 8) + 1
+    return 3 * windows * num_samples * 8 <= _MAX_QUADRATURE_BYTES
 
 
 def window_quadrature(num_samples: int, dt: float, width: int, stride: int, power: int = _POWER,
