@@ -1,6 +1,7 @@
 """The updates on the zoo of random perturbed systems (`dtwin_jax.zoo`), scored by family.
 
     python benchmarks/zoo.py --framework input-output|output-only --members 40 --seed 0
+        [--layout accelerations|states|displacement|accelerometers] [--duration 2]
         [--records 200] [--chains 4 --draws 2000 --burn-in 1000] [--json out.json]
 
 Member `i` is `zoo.draw_member(seed + i)` (the families cycle), measured at its own noise
@@ -27,16 +28,39 @@ from dtwin_jax import SamplerSettings, systems, update_input_output, update_outp
 from dtwin_jax.measurement import add_noise, measure
 
 
-def _update(member: zoo.Member, framework: str, records: int, settings: SamplerSettings):
+LAYOUTS = ("accelerations", "states", "displacement", "accelerometers")
+
+
+def _layout(nominal, layout: str, meas):
+    """The measured columns of a sensor layout: ``(x, x_names, xdot, xdot_names)``.
+
+    ``accelerations``: every state and every rate; ``states``: every state, no rates;
+    ``displacement``: the displacements only; ``accelerometers``: the accelerations (the
+    rates of the velocities) only, with the force."""
+    names = nominal.state_names
+    pos = [i for i in range(nominal.m) if i not in nominal.velocity_index]
+    vel = list(nominal.velocity_index)
+    if layout == "accelerations":
+        return meas.x, None, meas.xdot, None
+    if layout == "states":
+        return meas.x, None, None, None
+    if layout == "displacement":
+        return meas.x[..., pos], [names[i] for i in pos], None, None
+    return None, [], meas.xdot[..., vel], [names[i] for i in vel]
+
+
+def _update(member: zoo.Member, framework: str, records: int, settings: SamplerSettings,
+            layout: str = "accelerations", duration: float | None = None):
     """Simulate and measure one member, update its twin; returns the drift equations."""
     ex, level = member.example, member.noise_level
     sim_key = jax.random.fold_in(jax.random.key(member.seed), 1)  # not the pilot's key
     noise_key = jax.random.fold_in(jax.random.key(member.seed), 2)
     nominal = ex.system.nominal
     if framework == "input-output":
-        sim = systems.simulate_example(ex, sim_key)
+        sim = systems.simulate_example(ex, sim_key, duration=duration)
         meas = measure(noise_key, sim["t"], sim["x"], sim["xdot"], sim["u"], level=level)
-        result = update_input_output(nominal, meas.t, meas.x, meas.u, meas.xdot,
+        x, x_names, xdot, xdot_names = _layout(nominal, layout, meas)
+        result = update_input_output(nominal, meas.t, x, meas.u, xdot, x_names=x_names, xdot_names=xdot_names,
                                      library=ex.library, settings=settings, seed=member.seed)
     else:
         sim = systems.simulate_example_sde(ex, sim_key, num_records=records)
@@ -112,6 +136,9 @@ def table(rows) -> str:
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--framework", choices=["input-output", "output-only"], default="input-output")
+    p.add_argument("--layout", choices=LAYOUTS, default="accelerations",
+                   help="input-output: the sensors (every state and rate; states; displacements; accelerometers)")
+    p.add_argument("--duration", type=float, default=None, help="window length in s (default: the member's, 1 s)")
     p.add_argument("--members", type=int, default=40)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--records", type=int, default=200, help="output-only: records per member")
@@ -121,7 +148,7 @@ def main():
     p.add_argument("--json", default=None)
     a = p.parse_args()
     settings = SamplerSettings(num_chains=a.chains, num_draws=a.draws, num_burnin=a.burn_in)
-    print(f"{a.framework}, {a.members} members from seed {a.seed}; {a.chains} chains x "
+    print(f"{a.framework}" + (f" ({a.layout})" if a.framework == "input-output" else "") + f", {a.members} members from seed {a.seed}; {a.chains} chains x "
           f"{a.draws} draws, {a.burn_in} burn-in" + (f"; {a.records} records" if a.framework == "output-only" else ""),
           flush=True)
     rows = []
@@ -129,7 +156,7 @@ def main():
         start = time.perf_counter()
         member = zoo.draw_member(a.seed + i)
         try:
-            row = score(member, _update(member, a.framework, a.records, settings))
+            row = score(member, _update(member, a.framework, a.records, settings, a.layout, a.duration))
             failure = None
         except Exception as e:  # a failed update is a result too: scored as wrong
             row = {"support_exact": False, "support": {}, "terms": [
@@ -153,7 +180,7 @@ def main():
     print(table(rows), flush=True)
     if a.json:
         with open(a.json, "w") as f:
-            json.dump({"framework": a.framework, "members": a.members, "seed": a.seed,
+            json.dump({"framework": a.framework, "layout": a.layout, "duration": a.duration, "members": a.members, "seed": a.seed,
                        "records": a.records if a.framework == "output-only" else None,
                        "settings": {"chains": a.chains, "draws": a.draws, "burn_in": a.burn_in},
                        "rows": rows}, f, indent=1)
