@@ -58,7 +58,8 @@ class UpdatedTwin(eqx.Module):
     how the input behaves between samples (:func:`systems.check_interpolation`), as in the
     data the twin was updated from. `state_range (m, 2)`: the smallest and largest value of
     every state in that data (`preprocessing["state_range"]`), which bounds a prediction
-    (:func:`divergence_bounds`), or None.
+    (:func:`divergence_bounds`), or None. `model_error_sd (m,)`: the twin's free-run error
+    on that data (:mod:`dtwin_jax.model_error`), added to a prediction's band, or None.
     """
 
     nominal: LinearSecondOrder
@@ -69,6 +70,7 @@ class UpdatedTwin(eqx.Module):
     diffusion_coefficients: jax.Array | None = None
     interpolation: str = eqx.field(static=True, default="held")
     state_range: jax.Array | None = None
+    model_error_sd: tuple[float, ...] | None = eqx.field(static=True, default=None)
 
     def perturbation(self, x, u):
         """Discovered extra rate `(m,)` at one sample `x (m,)`, `u (n,)`."""
@@ -145,7 +147,7 @@ def posterior_twins(result, num_draws: int = 100, key=None) -> UpdatedTwin:
     dcoef = np.stack([e.theta[c, k] for e in diffusion], axis=1)  # (S, d, Kd)
     assert [e.state for e in diffusion] == [names[v] for v in result.nominal.velocity_index]
     return UpdatedTwin(twin.nominal, twin.library, twin.regressed, jnp.asarray(coef), *diffusion_terms(result, dcoef),
-                       twin.interpolation, twin.state_range)
+                       twin.interpolation, twin.state_range, twin.model_error_sd)
 
 
 def refined_coefficients(shape, index, values) -> np.ndarray:
@@ -259,7 +261,7 @@ def _chunks(S: int, progress: bool) -> int:
 
 
 def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = False, substeps: int | None = None,
-            progress: bool = False, max_failed: float = MAX_FAILED) -> dict:
+            progress: bool = False, max_failed: float = MAX_FAILED, model_error: bool = True) -> dict:
     """Posterior-predictive simulation of stacked twins (:func:`posterior_twins`).
 
     **Arguments:**
@@ -279,6 +281,8 @@ def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = 
     - `max_failed`: the largest fraction of draws that may diverge or fail (dropped from
       mean and band with a :class:`PredictionWarning`); more raise a one-line `DataError`
       saying when and in how many draws.
+    - `model_error`: widen the band by the twin's model error (`twins.model_error_sd`, its
+      free-run error on its training data; :func:`with_model_error`) when it has one.
 
     A draw diverges when a state leaves :func:`divergence_bounds` (100x the training range)
     or becomes non-finite: a diffrax `Event` ends its solve there, so an unstable twin is
@@ -326,6 +330,8 @@ def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = 
                 tick(min(size, S - start))
         paths, status, stop = (jnp.concatenate(p) for p in zip(*parts))
     out = {"t": t, **_summary(paths, status), "status": status, "stop_time": stop, "warnings": []}
+    if model_error and twins.model_error_sd is not None:
+        out = with_model_error(out, jnp.asarray(twins.model_error_sd))
     if not isinstance(status, jax.core.Tracer):
         message = failure_message(np.asarray(status), np.asarray(stop))
         if message and np.sum(np.asarray(status) != systems.OK) > max_failed * S:

@@ -46,6 +46,7 @@ save migrates it, removing only the five file names version 1 wrote.
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import tempfile
@@ -337,6 +338,10 @@ def _equations(head, blobs, folder, version, lib, dlib, nominal) -> list[Equatio
     interpolation = head["preprocessing"].get("input_interpolation", "held")
     if interpolation not in ("held", "linear", "bandlimited"):
         raise DataError(f"twin '{folder}': unknown input interpolation {interpolation!r}")
+    sd = head["preprocessing"].get("model_error_sd")
+    if sd is not None and not (isinstance(sd, list) and len(sd) == nominal.m and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0 for v in sd)):
+        raise DataError(f"twin '{folder}': model_error_sd must be {nominal.m} finite non-negative numbers")
     st = head["settings"]
     draws = twin_files.read_posterior(blobs["posterior.nc"], name, [(s, k, len(n)) for s, k, n in expected],
                                       st["num_chains"], st["num_draws"])

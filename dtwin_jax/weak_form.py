@@ -2,38 +2,51 @@
 
 Each regressed equation ``x_i' = f_i(x, u) + Theta(x, u) theta`` is multiplied by test
 functions ``phi_k(t) = (s (1 - s))^p`` on windows of the record (``s`` runs 0..1 over the
-window) and integrated; ``phi_k`` vanishes at the window's ends, so by parts
-``y_k = -int phi_k' x_i dt - int phi_k f_i(x, u) dt = int phi_k Theta(x, u) dt theta``:
-the rate never appears. Windows overlap, so the rows' noise is correlated; each equation's
-rows are whitened by their covariance under white measurement noise on the states
-(``Cov = sum_j s_j^2 A_j A_j^T`` with ``A_j = d y / d x_j`` through ``phi'`` and the nominal
-Jacobian), so the sampler's iid-noise model holds and its intervals are honest. Input noise
-is left out of that covariance (a white input cannot be told from white noise on it).
+window) and integrated; ``phi_k`` and its derivatives vanish at the window's ends, so by
+parts ``y_k = -int phi_k' x_i dt - int phi_k f_i(x, u) dt = int phi_k Theta(x, u) dt theta``:
+the rate never appears. A velocity that is not measured (displacement sensors alone) is
+integrated by parts once more, ``int phi v = -int phi' q`` and ``int phi' v = -int phi'' q``,
+so the nominal model's part stays exact; so is a library term ``g(q_j) v_j``, the time
+derivative of ``G(q_j)``: ``int phi g v = -int phi' G``. Only the terms nonlinear in an
+unmeasured velocity see an estimate of it (a Savitzky-Golay derivative).
+
+Windows overlap, so the rows' noise is correlated. Each equation's rows are whitened by their
+covariance: white measurement noise on the sensors (``sum_j s_j^2 A_j A_j^T``, ``A_j = d y /
+d x_j`` through the test functions and the nominal model) plus a white equation error of
+unknown size (input noise, process noise, what the library misses: ``lambda Phi Phi^T``),
+``lambda`` chosen by restricted maximum likelihood on the whole library's residual. Without
+that second part, input noise and model error would pass for information and the intervals
+would be too narrow.
 """
 
 from __future__ import annotations
-
-import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import sampler
-from dtwin_jax.denoise import auto_half_width, noise_std
+from dtwin_jax.denoise import auto_half_width, noise_std, savgol_design_ok, savgol_states
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library
-from dtwin_jax.measurement import highest_natural_frequency_hz
+from dtwin_jax.measurement import highest_natural_frequency_hz, savgol_coefficients, smooth
 from dtwin_jax.systems import LinearSecondOrder
 
-__all__ = ["weak_windows", "weak_window_fits", "window_quadrature", "weak_stats", "weak_input_output_stats"]
+__all__ = ["weak_windows", "weak_window_fits", "window_quadrature", "weak_layout_supported", "weak_stats",
+           "weak_input_output_stats", "derivative_terms"]
 
 _POWER = 6
+_STRIDES = 8  # windows per window width
 
 
-# The dense quadrature matrices (3 x windows x samples) the default route may build; past
-# this the automatic choice keeps the Savitzky-Golay route (a banded form would lift it).
-_MAX_QUADRATURE_BYTES = 1 << 30
+# Longer records are cut into segments whose dense quadrature and covariance matrices stay
+# under this (a window's worth of samples is lost at each cut).
+_SEGMENT_BYTES = 128 << 20
+# Restricted maximum likelihood looks at this many rows at most (records evenly chosen).
+_REML_ROWS = 4096
+
+# Relative sizes of the equation error tried by restricted maximum likelihood (0 included).
+_ERROR_GRID = np.concatenate([[0.0], np.logspace(-4, 4, 33)])
 
 
 def _period_samples(nominal: LinearSecondOrder, dt: float, num_samples: int) -> float:
@@ -50,120 +63,358 @@ def weak_windows(nominal: LinearSecondOrder, dt: float, num_samples: int) -> tup
     """
     width = int(round(_period_samples(nominal, dt, num_samples)))
     width = int(min(max(width, 2 * _POWER + 3), num_samples))
-    return width, max(1, width // 8)
+    return width, max(1, width // _STRIDES)
 
 
 def weak_window_fits(nominal: LinearSecondOrder, dt: float, num_samples: int) -> bool:
-    """Whether the default window (:func:`weak_windows`) spans enough samples for the test
-    functions, leaves at least two windows in a record of ``num_samples``, and its dense
-    quadrature matrices stay under 1 GiB."""
-    width = _period_samples(nominal, dt, num_samples)
-    if not (2 * _POWER + 3 <= width and width + width // 8 <= num_samples):
-        return False
-    windows = num_samples // max(1, int(round(width)) // 8) + 1
-    return 3 * windows * num_samples * 8 <= _MAX_QUADRATURE_BYTES
+    """Whether a record of ``num_samples`` holds at least two of the default windows
+    (:func:`weak_windows`: one period of the fastest mode, at least ``2 p + 3`` samples)."""
+    width, stride = weak_windows(nominal, dt, num_samples)
+    return width + stride <= num_samples
 
 
-def window_quadrature(num_samples: int, dt: float, width: int, stride: int, power: int = _POWER,
-                   held: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Quadrature matrices of the test functions over one record.
+def _segment_length(num_samples: int, width: int, stride: int) -> int:
+    """The longest record length (at most ``num_samples``, at least 4 windows) whose
+    quadrature (4 W N) and covariance (9 W^2) matrices fit ``_SEGMENT_BYTES``."""
+    n = num_samples
+    while n > 4 * width:
+        w = (n - width) // stride + 1
+        if 8 * (4 * w * n + 9 * w * w) <= _SEGMENT_BYTES:
+            break
+        n = max(4 * width, n // 2)
+    return n
 
-    **Arguments:** ``num_samples`` N, ``dt`` s, window ``width`` and ``stride`` (samples),
-    ``power`` p of ``phi = (s (1 - s))^p`` (scaled to unit integral), ``held``: the input's
-    weights integrate ``phi`` exactly over each held step rather than by the trapezoid rule.
 
-    **Returns:** ``(Phi, dPhi, Phi_u)``, each ``(num_windows, N)`` (s and 1/s units folded
-    in): ``Phi @ g`` ~ ``int phi_k g dt``, ``dPhi @ g`` ~ ``int phi_k' g dt``, ``Phi_u``
-    the input's weights.
-    """
-    if width < 2 * power + 3 or width > num_samples:
-        raise DataError(f"weak-form window of {width} samples must lie in [{2 * power + 3}, {num_samples}]")
-    if stride < 1:
-        raise DataError(f"weak-form stride must be >= 1 sample, got {stride}")
-    starts = np.arange(0, num_samples - width + 1, stride)
+def _segments(a: np.ndarray, length: int) -> np.ndarray:
+    """``(R, N, c)`` -> ``(R * (N // length), length, c)``; the remainder is dropped."""
+    R, N, c = a.shape
+    k = N // length
+    return a[:, : k * length].reshape(R * k, length, c)
+
+
+def weak_layout_supported(nominal: LinearSecondOrder, x_index) -> bool:
+    """Whether the measured states ``x_index`` suit the weak form: every displacement and
+    extra state measured (a velocity may be missing: it is integrated by parts)."""
+    need = [i for i in range(nominal.m) if i not in nominal.velocity_index]
+    return all(i in tuple(x_index) for i in need)
+
+
+def _test_functions(width: int, dt: float, power: int):
+    """``phi``, ``phi'``, ``phi''`` on one window's samples, scaled to unit integral, each
+    times ``dt`` (quadrature weights); and the held input's exact weights."""
     s = np.arange(width) / (width - 1)
     span = (width - 1) * dt
-    base = (s * (1 - s)) ** power
+    b = s * (1 - s)
+    base = b**power
     scale = 1.0 / (np.sum(base) * dt)  # the trapezoid's ends are zero
     phi = scale * base * dt
-    dphi = scale * power * (s * (1 - s)) ** (power - 1) * (1 - 2 * s) / span * dt
+    dphi = scale * power * b ** (power - 1) * (1 - 2 * s) / span * dt
+    ddphi = scale * power * (
+        (power - 1) * b ** (power - 2) * (1 - 2 * s) ** 2 - 2 * b ** (power - 1)) / span**2 * dt
     # Exact integral of the polynomial phi over each step [s_j, s_j+1] (Gauss-Legendre).
     nodes, weights = np.polynomial.legendre.leggauss(power + 1)
     h = 1.0 / (width - 1)
     mid = s[:-1, None] + h * (nodes[None] + 1) / 2
-    held_w = np.zeros(width)
-    held_w[:-1] = scale * np.sum(weights * (mid * (1 - mid)) ** power, axis=1) * h / 2 * span
-    Phi, dPhi, Phi_u = (np.zeros((starts.size, num_samples)) for _ in range(3))
+    held = np.zeros(width)
+    held[:-1] = scale * np.sum(weights * (mid * (1 - mid)) ** power, axis=1) * h / 2 * span
+    return phi, dphi, ddphi, held
+
+
+def _check_window(num_samples: int, width: int, stride: int, power: int) -> np.ndarray:
+    if width < 2 * power + 3 or width > num_samples:
+        raise DataError(f"weak-form window of {width} samples must lie in [{2 * power + 3}, {num_samples}]")
+    if stride < 1:
+        raise DataError(f"weak-form stride must be >= 1 sample, got {stride}")
+    return np.arange(0, num_samples - width + 1, stride)
+
+
+def _place(row: np.ndarray, starts: np.ndarray, num_samples: int) -> np.ndarray:
+    out = np.zeros((starts.size, num_samples))
     for k, a in enumerate(starts):
-        Phi[k, a:a + width], dPhi[k, a:a + width] = phi, dphi
-        Phi_u[k, a:a + width] = held_w if held else phi
-    return Phi, dPhi, Phi_u
+        out[k, a:a + row.size] = row
+    return out
+
+
+def window_quadrature(num_samples: int, dt: float, width: int, stride: int, power: int = _POWER,
+                      held: bool = True, second: bool = False) -> tuple[np.ndarray, ...]:
+    """Quadrature matrices of the test functions over one record.
+
+    **Arguments:** ``num_samples`` N, ``dt`` s, window ``width`` and ``stride`` (samples),
+    ``power`` p of ``phi = (s (1 - s))^p`` (scaled to unit integral), ``held``: the input's
+    weights integrate ``phi`` exactly over each held step rather than by the trapezoid rule;
+    ``second``: also return the second derivative's.
+
+    **Returns:** ``(Phi, dPhi, Phi_u)`` (and ``ddPhi`` with ``second``), each
+    ``(num_windows, N)`` (s and 1/s units folded in): ``Phi @ g`` ~ ``int phi_k g dt``,
+    ``dPhi @ g`` ~ ``int phi_k' g dt``, ``ddPhi @ g`` ~ ``int phi_k'' g dt``, ``Phi_u`` the
+    input's weights.
+    """
+    starts = _check_window(num_samples, width, stride, power)
+    phi, dphi, ddphi, held_w = _test_functions(width, dt, power)
+    out = (_place(phi, starts, num_samples), _place(dphi, starts, num_samples),
+           _place(held_w if held else phi, starts, num_samples))
+    return (*out, _place(ddphi, starts, num_samples)) if second else out
+
+
+def derivative_terms(lib: Library, x, u, pairs, *, grid: int = 8193) -> dict[int, np.ndarray]:
+    """The library terms that are a time derivative ``g(q_j) v_j = d G(q_j) / dt``, and ``G``.
+
+    **Arguments:** ``x (R, N, m)`` states (estimates where not measured), ``u (R, N, n)``,
+    ``pairs``: ``(position index, velocity index)`` of the states whose velocity is not
+    measured; ``grid`` points for the antiderivative over the measured displacement range.
+
+    **Returns:** ``{column: G(q_j(t)) (R, N)}``. A term qualifies when, on 64 sampled points,
+    it scales with ``v_j`` (by 2 and by -1/2) and does not change when every other state and
+    input is redrawn; ``G`` is its cumulative trapezoid integral in ``q_j`` on the grid.
+    """
+    x, u = np.asarray(x, dtype=np.float64), np.asarray(u, dtype=np.float64)
+    m = x.shape[-1]
+    flat_x, flat_u = x.reshape(-1, m), u.reshape(-1, u.shape[-1])
+    rng = np.random.default_rng(0)
+    rows = rng.choice(flat_x.shape[0], 64)
+    others = rng.choice(flat_x.shape[0], 64)
+    p, pu = flat_x[rows], flat_u[rows]
+    t0 = np.asarray(lib(p, pu))
+    tol = 1e-9 * (np.abs(t0) + np.max(np.abs(t0), axis=0) + 1e-300)
+    found: dict[int, np.ndarray] = {}
+    for qi, vi in pairs:
+        ok = np.any(np.abs(t0) > 0, axis=0)
+        for c in (2.0, -0.5):
+            pc = p.copy()
+            pc[:, vi] *= c
+            ok &= np.all(np.abs(np.asarray(lib(pc, pu)) - c * t0) <= abs(c) * tol, axis=0)
+        po = flat_x[others].copy()
+        po[:, [qi, vi]] = p[:, [qi, vi]]
+        ok &= np.all(np.abs(np.asarray(lib(po, flat_u[others])) - t0) <= tol, axis=0)
+        cols = [k for k in np.flatnonzero(ok) if k not in found]
+        if not cols:
+            continue
+        q = flat_x[:, qi]
+        lo, hi = float(min(q.min(), 0.0)), float(max(q.max(), 0.0))
+        pad = 1e-6 * (hi - lo) + 1e-300
+        s = np.unique(np.concatenate([np.linspace(lo - pad, hi + pad, grid), [0.0]]))
+        pts = np.repeat(flat_x[:1], s.size, axis=0)
+        pts[:, qi], pts[:, vi] = s, 1.0
+        g = np.asarray(lib(pts, np.repeat(flat_u[:1], s.size, axis=0)))[:, cols]
+        G = np.concatenate([np.zeros((1, len(cols))), np.cumsum((g[1:] + g[:-1]) / 2 * np.diff(s)[:, None], axis=0)])
+        for j, k in enumerate(cols):
+            found[int(k)] = np.interp(x[..., qi], s, G[:, j])
+    return found
+
+
+def _operators(nominal: LinearSecondOrder, x_index):
+    """Per regressed equation and measured column, the weights ``(alpha, beta, gamma)`` of
+    ``Phi``, ``dPhi``, ``ddPhi`` in ``y_i = -sum_r (alpha Phi + beta dPhi + gamma ddPhi) x_r + ...``.
+
+    Returns ``(q, p, 3)``, from ``int phi x_s`` and ``int phi' x_s`` written on measured
+    columns, and the nominal Jacobian."""
+    x_index = tuple(x_index)
+    d, m = nominal.d, nominal.m
+    J = np.asarray(jax.jacfwd(nominal.rate)(jnp.zeros(m), jnp.zeros(nominal.n)))
+    integral = np.zeros((m, len(x_index), 3))  # int phi x_s = sum_r w . (Phi, dPhi, ddPhi) x_r
+    derivative = np.zeros((m, len(x_index), 3))  # int phi' x_s
+    for s in range(m):
+        if s in x_index:
+            r = x_index.index(s)
+            integral[s, r, 0], derivative[s, r, 1] = 1.0, 1.0
+        else:  # an unmeasured velocity v_j = q_j'
+            r = x_index.index(s - d)
+            integral[s, r, 1], derivative[s, r, 2] = -1.0, -1.0
+    idx = list(nominal.regressed_index)
+    return derivative[idx] + np.einsum("is,srk->irk", J[idx], integral)
+
+
+def _reml_weight(L, Y, S_x, S_w) -> float:
+    """The equation error's weight ``lambda`` in ``S_x + lambda S_w`` by restricted maximum
+    likelihood of the whole library's least-squares residual.
+
+    ``L (R, W, K)`` columns, ``Y (R, W)`` targets, ``S_x``, ``S_w (W, W)``."""
+    from scipy.linalg import solve_triangular
+
+    R = L.shape[0]
+    unit = np.trace(S_x) / np.trace(S_w)
+    best, best_ll = 0.0, -np.inf
+    for lam in _ERROR_GRID * unit:
+        cov = S_x + lam * S_w
+        cov = cov + 1e-10 * np.trace(cov) / cov.shape[0] * np.eye(cov.shape[0])
+        chol = np.linalg.cholesky(cov)
+        X = np.concatenate([solve_triangular(chol, L[r], lower=True) for r in range(R)])
+        y = np.concatenate([solve_triangular(chol, Y[r], lower=True) for r in range(R)])
+        U, sv, _ = np.linalg.svd(X, full_matrices=False)
+        keep = sv > 1e-10 * sv[0]
+        dof = y.size - int(keep.sum())
+        if dof <= 0:
+            return 0.0
+        resid = y - U[:, keep] @ (U[:, keep].T @ y)
+        ll = -0.5 * (dof * np.log(resid @ resid / dof) + 2 * R * np.sum(np.log(np.diag(chol)))
+                     + 2 * np.sum(np.log(sv[keep])))
+        if ll > best_ll:
+            best, best_ll = float(lam), ll
+    return best
+
+
+def _effective_share(L, Y, cov) -> float:
+    """``n_eff / n`` of the whitened rows: arviz's ESS of the whole library's least-squares
+    residual, summed over records, at most 1. ``L (R, W, K)``, ``Y (R, W)``, ``cov (W, W)``."""
+    import arviz_stats as az
+    from scipy.linalg import solve_triangular
+
+    R, W, K = L.shape
+    chol = np.linalg.cholesky(cov + 1e-10 * np.trace(cov) / W * np.eye(W))
+    X = np.stack([solve_triangular(chol, L[r], lower=True) for r in range(R)])
+    y = np.stack([solve_triangular(chol, Y[r], lower=True) for r in range(R)])
+    coef, *_ = np.linalg.lstsq(X.reshape(-1, K), y.reshape(-1), rcond=1e-10)
+    resid = y - X @ coef
+    n_eff = sum(float(az.ess(r[None], method="mean")) for r in resid)
+    return float(min(n_eff / (R * W), 1.0))
 
 
 @jax.jit
-def weak_stats(nominal: LinearSecondOrder, lib: Library, Phi, dPhi, Phi_u, x, u, noise_var) -> sampler.SuffStats:
+def weak_stats(Y, L, cov) -> sampler.SuffStats:
     """Whitened weak-form statistics of every regressed equation, pooled over records.
 
-    **Arguments:** ``Phi, dPhi, Phi_u (W, N)`` from :func:`window_quadrature`; ``x (R, N, m)``
-    states, ``u (R, N, n)`` inputs, ``noise_var (m,)`` the states' white-noise variances
-    (units of each state squared; only their ratios matter).
+    **Arguments:** ``Y (R, W, q)`` the weak targets, ``L (R, W, K)`` the weak library
+    columns, ``cov (q, W, W)`` the rows' noise covariance per equation (the same in every
+    record; only its shape matters, the sampler fits the scale).
 
-    **Returns:** ``SuffStats`` batched over ``nominal.regressed_index`` (``n = R W`` rows).
+    **Returns:** ``SuffStats`` batched over the ``q`` equations (``n = R W`` rows).
     """
-    x, u, Phi, dPhi, Phi_u = (jnp.asarray(a) for a in (x, u, Phi, dPhi, Phi_u))
-    R, N, m = x.shape
-    idx = jnp.asarray(nominal.regressed_index)
-    zero_u = jnp.zeros_like(u)
-    f_x = jax.vmap(nominal.rate_batch)(x, zero_u)  # the states' part (and F0)
-    f_u = jax.vmap(nominal.rate_batch)(jnp.zeros_like(x), u) - jax.vmap(nominal.rate_batch)(jnp.zeros_like(x), zero_u)
-    Y = -(jnp.einsum("wn,rnm->rwm", dPhi, x) + jnp.einsum("wn,rnm->rwm", Phi, f_x)
-          + jnp.einsum("wn,rnm->rwm", Phi_u, f_u))[..., idx]  # (R, W, q)
-    L = jax.vmap(lambda a, b: Phi @ lib(a, b))(x, u)  # (R, W, K)
-    J = jax.jacfwd(nominal.rate)(jnp.zeros(m, x.dtype), jnp.zeros(u.shape[-1], x.dtype))  # (m, m)
-    eye = jnp.eye(m, dtype=x.dtype)
 
-    def one(i):
-        # y's noise from state j's noise: -(delta_ij dPhi + J_ij Phi) eps_j.
-        A = eye[i][:, None, None] * dPhi[None] + J[i][:, None, None] * Phi[None]  # (m, W, N)
-        cov = jnp.einsum("j,jwn,jvn->wv", noise_var, A, A)
-        jitter = 1e-10 * jnp.trace(cov) / cov.shape[0] + jnp.finfo(x.dtype).tiny
-        chol = jnp.linalg.cholesky(cov + jitter * jnp.eye(cov.shape[0], dtype=x.dtype))
+    def one(y, c):
+        jitter = 1e-10 * jnp.trace(c) / c.shape[0] + jnp.finfo(c.dtype).tiny
+        chol = jnp.linalg.cholesky(c + jitter * jnp.eye(c.shape[0], dtype=c.dtype))
         solve = lambda b: jax.scipy.linalg.solve_triangular(chol, b, lower=True)  # noqa: E731
         Lw = jax.vmap(solve)(L).reshape(-1, L.shape[-1])
-        yw = jax.vmap(solve)(Y[..., jnp.searchsorted(idx, i)]).reshape(-1)
-        return sampler.SuffStats(Lw.T @ Lw, Lw.T @ yw, yw @ yw, jnp.asarray(float(Lw.shape[0]), x.dtype))
+        yw = jax.vmap(solve)(y).reshape(-1)
+        return sampler.SuffStats(Lw.T @ Lw, Lw.T @ yw, yw @ yw, jnp.asarray(float(Lw.shape[0]), c.dtype))
 
-    return jax.vmap(one)(idx)
+    return jax.vmap(one, in_axes=(2, 0))(Y, cov)
 
 
-def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *, width: int | None = None,
-                            stride: int | None = None, power: int = _POWER, interpolation: str = "held",
-                            noise_var=None) -> tuple[sampler.SuffStats, dict]:
+def _library_states(nominal, x, x_index, u, dt, hw, noise_var, interpolation):
+    """The states the library is evaluated at ``(R, N, m)``, the variances of their
+    estimation error (``(m,)``, for the non-smooth terms' regression calibration) and how an
+    unmeasured velocity was estimated.
+
+    Displacements are Savitzky-Golay smoothed (the noise of a nonlinear term is not in the
+    rows' covariance: a cubic stiffness of noisy displacements picks velocity terms); a
+    measured velocity stays raw (smoothing blunts its reversals, and sign(v) with them). An
+    unmeasured velocity is the derivative of its displacement: Savitzky-Golay at half the
+    states' width (sharper reversals; its noise goes into the calibration) where the filter
+    can reach 8x the fastest mode below Nyquist, else the state-space smoother's."""
+    R, N, _ = x.shape
+    full = np.zeros((R, N, nominal.m))
+    full[..., list(x_index)] = x
+    positions = [r for r, i in enumerate(x_index) if i not in nominal.velocity_index]
+    full[..., [x_index[r] for r in positions]] = np.asarray(savgol_states(x[..., positions], hw))
+    missing = [(i - nominal.d, i) for i in range(nominal.m) if i not in x_index]
+    spread = np.zeros(nominal.m)
+    if not missing:
+        return full, spread, None
+    if not savgol_design_ok(nominal, dt):
+        from dtwin_jax.estimate import state_smoother
+
+        smoothed, _, _ = state_smoother(nominal, dt, x, x_index, u, interpolation=interpolation)
+        for _, vi in missing:
+            full[..., vi] = smoothed[..., vi]
+        return full, spread, "state-space smoother"
+    vhw = max(3, hw // 2)
+    taps = savgol_coefficients(vhw, 4, deriv=1, dt=dt)
+    for qi, vi in missing:
+        r = x_index.index(qi)
+        full[..., vi] = np.asarray(smooth(x[..., [r]], vhw, order=4, deriv=1, dt=dt))[..., 0]
+        spread[vi] = noise_var[r] * np.sum(taps**2)
+    return full, spread, f"savitzky-golay derivative (order 4, half width {vhw})"
+
+
+def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *, x_index=None,
+                            width: int | None = None, stride: int | None = None, power: int = _POWER,
+                            interpolation: str = "held", noise_var=None,
+                            equation_error: bool = True) -> tuple[sampler.SuffStats, dict]:
     """Weak-form statistics from measured states without rates.
 
-    **Arguments:** ``t (N,)`` s (uniform), ``x (R, N, m)`` every state measured, ``u (R, N, n)``;
-    ``width``/``stride`` in samples (default :func:`weak_windows`), ``power`` of the test
-    functions, ``interpolation`` of the inputs (``"held"`` integrates them exactly over each
-    step), ``noise_var (m,)`` the states' noise variances (default: from the Savitzky-Golay
-    residual of each state, pooled over records).
+    **Arguments:**
+
+    - ``t (N,)`` s (uniform); ``x (R, N, p)`` the measured states ``x_index`` (default all
+      ``m``: every displacement and extra state must be measured, a velocity may be missing);
+      ``u (R, N, n)`` inputs.
+    - ``width``/``stride`` in samples (default :func:`weak_windows`), ``power`` of the test
+      functions, ``interpolation`` of the inputs (``"held"`` integrates them exactly over each
+      step).
+    - ``noise_var (p,)`` the measured states' noise variances (default: from the
+      Savitzky-Golay residual of each, pooled over records).
+    - ``equation_error``: add a white equation error to the rows' covariance, its size by
+      restricted maximum likelihood (False: measurement noise only).
 
     **Returns:** ``(SuffStats`` batched over the regressed equations``, description dict)``.
     """
     t = np.asarray(t, dtype=np.float64)
     x, u = np.asarray(x, dtype=np.float64), np.asarray(u, dtype=np.float64)
+    x_index = tuple(range(nominal.m)) if x_index is None else tuple(x_index)
     if x.ndim != 3 or u.ndim != 3 or x.shape[:2] != u.shape[:2] or x.shape[1] != t.size:
-        raise DataError(f"weak form needs x (R, N, m) and u (R, N, n) on t (N,), got {x.shape}, {u.shape}, {t.shape}")
-    if x.shape[2] != nominal.m:
-        raise DataError(f"weak form needs every one of the {nominal.m} states measured, got {x.shape[2]}")
+        raise DataError(f"weak form needs x (R, N, p) and u (R, N, n) on t (N,), got {x.shape}, {u.shape}, {t.shape}")
+    if x.shape[2] != len(x_index) or not weak_layout_supported(nominal, x_index):
+        raise DataError(f"weak form needs every displacement and extra state of the {nominal.m} measured, "
+                        f"got {x.shape[2]} columns for states {[i + 1 for i in x_index]}")
     dt = float(t[1] - t[0])
     default_width, default_stride = weak_windows(nominal, dt, t.size)
     width = default_width if width is None else int(width)
     stride = default_stride if stride is None else int(stride)
-    Phi, dPhi, Phi_u = window_quadrature(t.size, dt, width, stride, power, held=interpolation == "held")
+    hw = auto_half_width(nominal, dt, t.size)
     if noise_var is None:
-        hw = auto_half_width(nominal, dt, t.size)
         noise_var = np.mean(np.asarray(noise_std(x, hw)) ** 2, axis=0)
-    stats = weak_stats(nominal, lib, Phi, dPhi, Phi_u, x, u, jnp.asarray(noise_var, dtype=jnp.float64))
+    noise_var = np.asarray(noise_var, dtype=np.float64)
+    samples = x.shape[0] * x.shape[1]
+    full, spread, velocity = _library_states(nominal, x, x_index, u, dt, hw, noise_var, interpolation)
+    missing = [(i - nominal.d, i) for i in range(nominal.m) if i not in x_index]
+    length = _segment_length(t.size, width, stride)
+    if length < t.size:  # a long record: segments, each a record of its own
+        x, u, full = _segments(x, length), _segments(u, length), _segments(full, length)
+    R, N, _ = x.shape
+    Phi, dPhi, Phi_u, ddPhi = window_quadrature(N, dt, width, stride, power, held=interpolation == "held",
+                                                second=True)
+    ops = _operators(nominal, x_index)  # (q, p, 3)
+    # The targets: linear in the measured states, nothing differentiated.
+    integrals = np.stack([np.einsum("wn,rnp->rwp", M, x) for M in (Phi, dPhi, ddPhi)], axis=-1)  # (R, W, p, 3)
+    f_u = np.asarray(jax.vmap(nominal.rate_batch)(jnp.zeros((R, N, nominal.m)), jnp.asarray(u)))
+    f_0 = np.asarray(nominal.rate(jnp.zeros(nominal.m), jnp.zeros(nominal.n)))
+    idx = list(nominal.regressed_index)
+    f_u = f_u - f_0
+    Y = -(np.einsum("rwpk,ipk->rwi", integrals, ops) + np.einsum("wn,rni->rwi", Phi_u, f_u[..., idx])
+          + Phi.sum(axis=1)[None, :, None] * f_0[idx][None, None])
+    # The library at the states; the exact time derivatives by parts.
+    L = np.array(jax.vmap(lambda a, b: jnp.asarray(Phi) @ lib(a, b, smoothing=spread))(jnp.asarray(full),
+                                                                                     jnp.asarray(u)))
+    by_parts = derivative_terms(lib, full, u, missing) if missing else {}
+    for k, G in by_parts.items():
+        L[..., k] = -np.einsum("wn,rn->rw", dPhi, G)
+    # The rows' covariance: sensor noise through the operators, plus the equation error.
+    mats = (Phi, dPhi, ddPhi)
+    grams = np.array([[a @ b.T for b in mats] for a in mats])  # (3, 3, W, W)
+    S_x = np.einsum("p,ipa,ipb,abvw->ivw", noise_var, ops, ops, grams)
+    S_w = Phi @ Phi.T
+    weights = np.zeros(len(idx))
+    if equation_error:
+        Ls = L / np.maximum(np.linalg.norm(L.reshape(-1, L.shape[-1]), axis=0), 1e-300)
+        some = np.unique(np.linspace(0, R - 1, max(1, min(R, _REML_ROWS // L.shape[1]))).round().astype(int))
+        for i in range(len(idx)):
+            weights[i] = _reml_weight(Ls[some], Y[some, :, i], S_x[i], S_w)
+    cov = S_x + weights[:, None, None] * S_w[None]
+    stats = weak_stats(jnp.asarray(Y), jnp.asarray(L), jnp.asarray(cov))
+    scale = np.ones(len(idx))
+    if equation_error:  # what whitening leaves correlated (coloured model error) counts once
+        for i in range(len(idx)):
+            scale[i] = _effective_share(Ls, Y[..., i], cov[i])
+        stats = sampler.SuffStats(stats.gram * scale[:, None, None], stats.xty * scale[:, None],
+                                  stats.yty * scale, stats.n * scale)
+    names = nominal.state_names
     info = {"method": "weak-form", "width": width, "stride": stride, "power": power, "windows": int(Phi.shape[0]),
-            "whitened": "white state noise", "state_noise_std": np.sqrt(np.asarray(noise_var)).tolist()}
+            "whitened": "white sensor noise" + (" and a white equation error (REML)" if equation_error else ""),
+            "state_noise_std": np.sqrt(noise_var).tolist(), "segments": int(R), "segment_samples": int(N),
+            "samples_used": int(R * N), "samples": int(samples),
+            "effective_share": scale.tolist(),
+            "equation_error_share": [float(w * np.trace(S_w) / (w * np.trace(S_w) + np.trace(S_x[i])))
+                                     for i, w in enumerate(weights)],
+            "velocities_estimated": [names[v] for _, v in missing], "velocity_estimate": velocity,
+            "integrated_by_parts": sorted(lib.names[k] for k in by_parts)}
     return stats, info

@@ -18,20 +18,44 @@ from dtwin_jax import sampler
 from dtwin_jax.checks import residual_checks
 from dtwin_jax.collinearity import collinearity_checks, twin_coefficients
 from dtwin_jax.data import Records, check_records, state_range
-from dtwin_jax.denoise import auto_half_width, kinematic_smoother, savgol_design_ok, savgol_states
+from dtwin_jax.denoise import (
+    auto_half_width,
+    kinematic_smoother,
+    savgol_design_ok,
+    savgol_states,
+)
 from dtwin_jax.errors import DataError
 from dtwin_jax.estimate import measured_index, state_smoother
 from dtwin_jax.library import Library, check_columns, without_degenerate_columns
 from dtwin_jax.measurement import smooth
+from dtwin_jax.model_error import training_model_error
 from dtwin_jax.progress import Stages
 from dtwin_jax.resources import check_update
-from dtwin_jax.systems import LinearSecondOrder, check_interpolation, resolve_interpolation
+from dtwin_jax.systems import (
+    LinearSecondOrder,
+    check_interpolation,
+    resolve_interpolation,
+)
 from dtwin_jax.targets import input_output_targets, smoothed_input_output_stats
-from dtwin_jax.update.lifecycle import check_previous, check_repeat, updated_history, with_previous
+from dtwin_jax.update.lifecycle import (
+    check_previous,
+    check_repeat,
+    updated_history,
+    with_previous,
+)
 from dtwin_jax.update.output_error import refine_output_error
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
-from dtwin_jax.update.sampling import _sample_equations, numpy_stats, posteriors, resolve_library
-from dtwin_jax.weak_form import weak_input_output_stats, weak_window_fits
+from dtwin_jax.update.sampling import (
+    _sample_equations,
+    numpy_stats,
+    posteriors,
+    resolve_library,
+)
+from dtwin_jax.weak_form import (
+    weak_input_output_stats,
+    weak_layout_supported,
+    weak_window_fits,
+)
 
 __all__ = ["update_input_output", "denoise_states"]
 
@@ -101,10 +125,17 @@ def update_input_output(
     hw = auto_half_width(nominal, rec.dt, rec.t.size)
     every = tuple(range(nominal.m))
     partial = x_index != every or (rec.xdot is not None and xdot_index != every)
-    if smoothing == "weak" and (partial or rec.xdot is not None):
-        raise DataError("smoothing='weak' needs every state measured and no measured rates")
-    if smoothing == "auto" and rec.xdot is None and not partial and weak_window_fits(nominal, rec.dt, rec.t.size):
-        smoothing = "weak"  # benchmarks/weak_form.py: 0.64% vs 3.15% median cubic error at 5% noise
+    weak_ok = rec.xdot is None and weak_layout_supported(nominal, x_index)
+    if smoothing == "weak" and not weak_ok:
+        raise DataError("smoothing='weak' needs every displacement and extra state measured and no measured rates")
+    # At a few samples per period the weak form's sums are exact for a band-limited input's
+    # response only: a held input's steps alias (a 9-samples-per-period Duffing under held
+    # white noise: free run 68% off, against 7% by the state-space smoother).
+    sampled_well = savgol_design_ok(nominal, rec.dt) or interpolation == "bandlimited"
+    if smoothing == "auto" and weak_ok and sampled_well and weak_window_fits(nominal, rec.dt, rec.t.size):
+        # benchmarks/weak_form.py: 0.64% vs 3.15% median cubic error at 5% noise (states);
+        # benchmarks/zoo.py --layout displacement: the state-space route found nothing.
+        smoothing = "weak"
     warnings = []
     if smoothing == "auto" and rec.xdot is None and not savgol_design_ok(nominal, rec.dt):
         warnings.append(
@@ -134,7 +165,8 @@ def update_input_output(
         stats, noise_var = smoothed_input_output_stats(nominal, lib, xs, rec.u, rates, hw, correct_inputs=correct)
         n_eff = None
         if smoothing == "weak":  # the Savitzky-Golay rates above serve the residual checks only
-            stats, weak_info = weak_input_output_stats(nominal, lib, rec.t, rec.x, rec.u, interpolation=interpolation)
+            stats, weak_info = weak_input_output_stats(nominal, lib, rec.t, rec.x, rec.u, x_index=x_index,
+                                                       interpolation=interpolation)
             smoothing_info = {"states": smoothing_info, "regression": weak_info}
         if rate_source == "state-space smoother":
             stats, n_eff = _autocorrelation_corrected(stats, nominal, lib, xs, rec.u, rates)
@@ -182,7 +214,7 @@ def update_input_output(
     )
     if not refine:
         stages.close()
-        return result
+        return _with_model_error(result, rec, x_index, xs)
     noise = np.sqrt(np.mean((rec.x - xs[..., list(x_index)]) ** 2, axis=(0, 1)))
     try:
         with stages("output-error refinement"), stages:
@@ -195,12 +227,32 @@ def update_input_output(
             "ok": False, "warnings": [f"failed ({type(e).__name__}): {reason}; the twin is the Gibbs posterior's, "
                                       "unrefined"]}})
     preprocessing = {**result.preprocessing, "stage_seconds": dict(stages.seconds)}  # the refinement's too
-    return dataclasses.replace(result, preprocessing=preprocessing, seconds=time.perf_counter() - start)
+    result = dataclasses.replace(result, preprocessing=preprocessing, seconds=time.perf_counter() - start)
+    return _with_model_error(result, rec, x_index, xs)
+
+
+def _with_model_error(result: UpdateResult, rec, x_index, xs) -> UpdateResult:
+    """The result with the twin's free-run error on its training data
+    (``preprocessing["model_error_sd"]``, :mod:`dtwin_jax.model_error`), which predictions
+    add to their band; a warning instead when that free run fails."""
+    start = time.perf_counter()
+    sd, why = training_model_error(result.twin, rec.t, rec.x, rec.u, x_index, xs[:, 0])
+    preprocessing = {**result.preprocessing, "model_error_sd": sd}
+    checks = result.checks
+    if why is not None:
+        checks = {**checks, "model_error": {"ok": False, "warnings": [why + "; predictions carry the parameter "
+                                                                      "uncertainty only"]}}
+    return dataclasses.replace(result, preprocessing=preprocessing, checks=checks,
+                               seconds=result.seconds + time.perf_counter() - start)
 
 
 def _states_and_rates(rec, nominal, smoothing, partial, x_index, xdot_index, interpolation, hw):
     """Denoised or estimated states ``(R, N, m)`` and their rates, a description of the
     smoothing, where the rates came from, and whether the input-noise correction applies."""
+    if smoothing == "weak" and partial:  # residual checks on Savitzky-Golay derivatives of the displacements
+        xs, rates = _savgol_from_displacements(rec, nominal, x_index, hw)
+        info = {"method": "savitzky-golay", "order": 4, "half_width": hw}
+        return xs, rates, info, "none: weak form (residual checks on Savitzky-Golay derivatives)", False
     if partial or smoothing == "statespace":
         xs, rates, info = state_smoother(
             nominal, rec.dt, rec.x, x_index, rec.u, rec.xdot, xdot_index, interpolation=interpolation
@@ -215,6 +267,21 @@ def _states_and_rates(rec, nominal, smoothing, partial, x_index, xdot_index, int
         return xs, rec.xdot, info, "measured", smoothing is not None
     rates = np.asarray(smooth(rec.x, hw, order=4, deriv=1, dt=rec.dt))
     return xs, rates, info, f"savitzky-golay derivative (order 4, half width {hw})", False
+
+
+def _savgol_from_displacements(rec, nominal, x_index, hw) -> tuple[np.ndarray, np.ndarray]:
+    """States ``(R, N, m)`` and rates with every unmeasured velocity the Savitzky-Golay
+    derivative of its displacement (the weak form's layouts: displacements measured)."""
+    R, N, _ = rec.x.shape
+    xs, rates = np.zeros((R, N, nominal.m)), np.zeros((R, N, nominal.m))
+    measured = np.asarray(savgol_states(rec.x, hw))
+    slope = np.asarray(smooth(rec.x, hw, order=4, deriv=1, dt=rec.dt))
+    curve = np.asarray(smooth(rec.x, hw, order=4, deriv=2, dt=rec.dt))
+    for r, i in enumerate(x_index):
+        xs[..., i], rates[..., i] = measured[..., r], slope[..., r]
+        if i < nominal.d and i + nominal.d not in x_index:  # its velocity from it
+            xs[..., i + nominal.d], rates[..., i + nominal.d] = slope[..., r], curve[..., r]
+    return xs, rates
 
 
 def denoise_states(records: Records, nominal: LinearSecondOrder, smoothing="auto") -> tuple:

@@ -83,9 +83,11 @@ class UpdateResult:
         # The measured states' range bounds a prediction (absent from twins saved before it).
         state_range = self.preprocessing.get("state_range")
         state_range = None if state_range is None else jnp.asarray(state_range, dtype=float)
+        sd = self.preprocessing.get("model_error_sd")
+        sd = None if sd is None else tuple(float(v) for v in sd)
         if not diffusion:
             return UpdatedTwin(self.nominal, self.library, index, jnp.asarray(coef), interpolation=interpolation,
-                               state_range=state_range)
+                               state_range=state_range, model_error_sd=sd)
         dcoef = np.stack([e.coefficients for e in diffusion])
         return UpdatedTwin(self.nominal, self.library, index, jnp.asarray(coef), *diffusion_terms(self, dcoef),
                            state_range=state_range)
