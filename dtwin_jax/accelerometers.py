@@ -52,7 +52,7 @@ from dtwin_jax.errors import DataError
 from dtwin_jax.kalman import kalman_filter, rts_smoother
 from dtwin_jax.systems import LinearSecondOrder
 
-__all__ = ["CROSSOVER", "accelerometer_layout", "check_accelerometer_layout", "sampler_selection", "anchored_smoother", "accelerometer_states"]
+__all__ = ["CROSSOVER", "accelerometer_layout", "check_accelerometer_layout", "sampler_selection", "output_only_refusal", "anchored_smoother", "accelerometer_states"]
 
 # The anchor and the integrated accelerations cross over at the lowest natural frequency over
 # this factor. Example 1 (2 s, 3% noise), cubic coefficient with the true perturbation in the
@@ -65,14 +65,13 @@ MAX_ITERATIONS = 12
 TOLERANCE = 1e-4
 
 
-def check_accelerometer_layout(nominal: LinearSecondOrder, xdot_index, *, inputs: bool) -> None:
+def check_accelerometer_layout(nominal: LinearSecondOrder, xdot_index) -> None:
     """Refuse, in one line, an accelerometer-only layout whose states cannot be estimated.
 
     **Arguments:**
 
     - ``nominal``: the nominal model (``d`` degrees of freedom, ``E`` extra states).
     - ``xdot_index``: indices of the measured rates (``xdot_names``).
-    - ``inputs``: whether the force ``u`` is measured (input-output).
 
     **Returns:**
 
@@ -116,9 +115,34 @@ def accelerometer_layout(nominal: LinearSecondOrder, xdot, xdot_names, u, refine
         raise DataError("no measurement of the states: give 'x' (states) or 'xdot' (accelerations)")
     if refine:
         raise DataError("refine (output error) needs measured states 'x'; accelerometers alone have none")
-    check_accelerometer_layout(nominal, measured_index(xdot_names, nominal, "xdot_names"), inputs=u is not None)
+    check_accelerometer_layout(nominal, measured_index(xdot_names, nominal, "xdot_names"))
     xdot = real_array("'xdot'", xdot)
     return np.zeros(xdot.shape[:-1] + (0,)), []
+
+
+def output_only_refusal(nominal: LinearSecondOrder, xdot, xdot_names) -> None:
+    """Refuse output-only data with measured rates, in one line naming what is missing.
+
+    **Arguments:**
+
+    - ``nominal``: the nominal model.
+    - ``xdot``: the measured rates, or None.
+    - ``xdot_names``: their states (None: all ``m``).
+
+    **Returns:**
+
+    Never; raises :class:`DataError`. With nothing measured, or a degree of freedom without an
+    accelerometer, it names the missing ``xdot``. Otherwise (accelerometers alone, ambient
+    vibration): the drift could be anchored without the force (its white part is the
+    anchor's noise), but the diffusion cannot be told from the accelerometers' own white
+    noise by this update yet, so it asks for the states ``x`` or the force ``u``."""
+    from dtwin_jax.estimate import measured_index
+
+    if xdot is None:
+        raise DataError("no measurement of the states: output-only needs 'x' (states)")
+    check_accelerometer_layout(nominal, measured_index(xdot_names, nominal, "xdot_names"))
+    raise DataError("output-only from accelerometers alone is not supported yet: the diffusion needs the states "
+                    "'x' (or measure the force 'u' and update input-output)")
 
 
 def _drive(nominal: LinearSecondOrder, a, u):
@@ -286,10 +310,15 @@ def sampler_selection(nominal: LinearSecondOrder, dt: float, lib, u, settings, s
         xf = jnp.asarray(x).reshape(R * N, m)
         Y = np.asarray(input_output_targets(nominal, xf, uf, jnp.asarray(rates).reshape(R * N, m))).reshape(R, N, -1)
         L = np.asarray(lib(xf, uf)).reshape(R, N, -1)
-        stats = equation_stats(*(high_pass(nominal, dt, v).reshape(R * N, -1) for v in (L, Y)))
-        trace = _sample_equations(stats, first_pass_settings(settings), seed, False)
+        Lf, Yf = (high_pass(nominal, dt, v).reshape(R * N, -1) for v in (L, Y))
+        # A constant force only shifts the static displacement, which accelerometers do not
+        # see: the constant term (nothing left of it once high-passed) is left out.
+        keep = np.flatnonzero(np.std(Lf, axis=0) > 1e-3 * np.std(L.reshape(R * N, -1), axis=0))
+        trace = _sample_equations(equation_stats(Lf[:, keep], Yf), first_pass_settings(settings), seed, False)
         names = [nominal.state_names[i] for i in nominal.regressed_index]
-        return np.stack([e.coefficients for e in posteriors(trace, names, "drift", lib.names, 0.5)])
+        coef = np.zeros((len(names), lib.K))
+        coef[:, keep] = np.stack([e.coefficients for e in posteriors(trace, names, "drift", [lib.names[k] for k in keep], 0.5)])
+        return coef
 
     return select
 
