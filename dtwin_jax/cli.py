@@ -250,17 +250,20 @@ def _update(args, mode, nominal, data, *, library, diffusion_library=None, previ
     if mode == "output-only":
         if getattr(args, "refine", False):
             raise DataError("--refine needs input-output data (output error simulates the measured input)")
-        if data.get("x_names") not in (None, list(nominal.state_names)) or "xdot" in data:
-            raise DataError("output-only mode needs every state measured (no 'x_names' subset, no 'xdot')")
         from dtwin_jax.update.output_only import update_output_only
 
+        if "x" not in data:  # accelerometers alone: the update says what it cannot estimate
+            return update_output_only(nominal, data["t"], None, xdot=data["xdot"], xdot_names=data.get("xdot_names"),
+                                      library=library, diffusion_library=diffusion_library, **common)
+        if data.get("x_names") not in (None, list(nominal.state_names)) or "xdot" in data:
+            raise DataError("output-only mode needs every state measured (no 'x_names' subset, no 'xdot')")
         return update_output_only(nominal, data["t"], data["x"], library=library,
                                   diffusion_library=diffusion_library, **common)
     if "u" not in data:
         raise DataError(f"input-output mode needs key 'u' in '{args.data}'")
     from dtwin_jax.update.input_output import update_input_output
 
-    return update_input_output(nominal, data["t"], data["x"], data["u"], data.get("xdot"),
+    return update_input_output(nominal, data["t"], data.get("x"), data["u"], data.get("xdot"),
                                x_names=data.get("x_names"), xdot_names=data.get("xdot_names"),
                                interpolation=data.get("u_interpolation", "auto"),
                                library=library, smoothing=args.smoothing, refine=getattr(args, "refine", False),

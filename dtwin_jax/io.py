@@ -98,10 +98,11 @@ def write_nominal(path, nominal: LinearSecondOrder) -> None:
 def load_measurements(path) -> dict:
     """Read ``t``, ``x`` and optional ``u``, ``xdot``, ``x_names``, ``xdot_names`` and
     ``u_interpolation`` (absent: chosen from the input's spectrum) from ``.npz`` or ``.csv``.
+    ``x`` may be absent when ``xdot`` is present (accelerometers alone).
 
     A CSV file holds one record with header ``t,`` then measured state names (all of
     ``x1..xm`` or a subset, which become ``x_names``) ``[,u1..un]``; columns ``xdot1..``
-    (an extension) carry measured rates.
+    (all or a subset, which become ``xdot_names``) carry measured rates.
     """
     path = Path(path)
     if not path.exists():
@@ -113,10 +114,11 @@ def load_measurements(path) -> dict:
         data = _read_csv(path)
     else:
         raise DataError(f"measurement file '{path}' must be .npz or .csv")
-    for key in ("t", "x"):
+    # 'x' may be left out when 'xdot' is there: accelerometers alone (formats.md).
+    for key in ("t",) + (() if "xdot" in data else ("x",)):
         if key not in data:
             raise DataError(f"measurement file '{path}' is missing key '{key}'")
-    out = {"t": data["t"], "x": data["x"]}
+    out = {"t": data["t"]} | ({"x": data["x"]} if "x" in data else {})
     for key in ("u", "xdot"):
         if key in data:
             out[key] = data[key]
@@ -228,16 +230,18 @@ def _read_csv(path: Path) -> dict:
     data = {}
     if "t" in cols:
         data["t"] = cols["t"]
-    for key, prefix in (("u", "u"), ("xdot", "xdot")):
-        names = _numbered(header, prefix)
-        if names:
-            data[key] = np.stack([cols[n] for n in names], axis=1)
+    names = _numbered(header, "u")
+    if names:
+        data["u"] = np.stack([cols[n] for n in names], axis=1)
+    rates = [h for h in header if h.startswith("xdot") and h[4:].isdigit()]  # a subset, like the states
+    if rates:
+        data["xdot"] = np.stack([cols[n] for n in rates], axis=1)
+        data["xdot_names"] = np.asarray(["x" + h[4:] for h in rates])
     states = [h for h in header if h.startswith("x") and h[1:].isdigit()]  # a subset in any order
     if states:
         data["x"] = np.stack([cols[n] for n in states], axis=1)
         data["x_names"] = np.asarray(states)  # the header names them: all states or a subset
-    unknown = [h for h in header if h != "t" and h not in states and not any(
-        h in _numbered(header, p) for p in ("u", "xdot"))]
+    unknown = [h for h in header if h != "t" and h not in states and h not in rates and h not in _numbered(header, "u")]
     if unknown:
         raise DataError(f"'{path}' has unknown column '{unknown[0]}' (expected t, x1.., u1.., xdot1..)")
     return data

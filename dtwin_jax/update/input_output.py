@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import sampler
+from dtwin_jax.accelerometers import accelerometer_layout, accelerometer_states, sampler_selection
 from dtwin_jax.checks import residual_checks
 from dtwin_jax.collinearity import collinearity_checks, twin_coefficients
 from dtwin_jax.data import Records, check_records, state_range
@@ -107,6 +108,9 @@ def update_input_output(
     start = time.perf_counter()
     if interpolation != "auto":
         check_interpolation(interpolation)  # refuse a bad name before the data checks
+    accelerometers = x is None  # accelerometers alone (dtwin_jax.accelerometers)
+    if accelerometers:
+        x, x_names = accelerometer_layout(nominal, xdot, xdot_names, u, refine)
     x_index = measured_index(x_names, nominal)
     xdot_index = measured_index(xdot_names, nominal, "xdot_names") if xdot is not None else ()
     rec = check_records(t, x, u, xdot, nominal, x_columns=len(x_index), xdot_columns=len(xdot_index) or None)
@@ -148,8 +152,13 @@ def update_input_output(
                         "Nyquist: rate estimates biased (smoothing='statespace' avoids this)")
     stages = Stages(progress, 4 + refine, "input-output update")
     with stages("states and rates"):
-        xs, rates, smoothing_info, rate_source, correct = _states_and_rates(
-            rec, nominal, smoothing, partial, x_index, xdot_index, interpolation, hw)
+        if accelerometers:
+            xs, rates, smoothing_info = accelerometer_states(
+                nominal, rec.dt, rec.xdot, xdot_index, rec.u, lib, sampler_selection(nominal, rec.dt, lib, rec.u, settings, seed))
+            rate_source, correct, smoothing = "measured", True, "accelerometers"
+        else:
+            xs, rates, smoothing_info, rate_source, correct = _states_and_rates(
+                rec, nominal, smoothing, partial, x_index, xdot_index, interpolation, hw)
     R, N, m = xs.shape
     with stages("library statistics"):
         L = np.asarray(lib(xs.reshape(R * N, m), rec.u.reshape(R * N, -1)))
@@ -168,7 +177,7 @@ def update_input_output(
             stats, weak_info = weak_input_output_stats(nominal, lib, rec.t, rec.x, rec.u, x_index=x_index,
                                                        interpolation=interpolation)
             smoothing_info = {"states": smoothing_info, "regression": weak_info}
-        if rate_source == "state-space smoother":
+        if rate_source == "state-space smoother" or accelerometers:  # smoothed states: correlated rows
             stats, n_eff = _autocorrelation_corrected(stats, nominal, lib, xs, rec.u, rates)
         stats = jax.block_until_ready(with_previous(stats, "drift", previous, forget))
     with stages("sampling"):
@@ -200,6 +209,7 @@ def update_input_output(
             "rates": rate_source,
             "measured_states": [names[i] for i in x_index],
             "measured_rates": [names[i] for i in xdot_index],
+            **({"layout": "accelerometers", "states": "anchored kinematic RTS"} if accelerometers else {}),
             "input_interpolation": interpolation,
             "input_interpolation_chosen_by": interpolation_chosen_by,
             "input_noise_std": None if noise_var is None else np.sqrt(noise_var).tolist(),

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import aot, kramers_moyal, sampler, statespace
+from dtwin_jax.accelerometers import output_only_refusal
 from dtwin_jax.ahead import Ahead
 from dtwin_jax.checks import residual_checks
 from dtwin_jax.collinearity import collinearity_checks
@@ -49,6 +50,8 @@ def update_output_only(
     t,
     x,
     *,
+    xdot=None,
+    xdot_names=None,
     library: str | Library | None = None,
     diffusion_library: str | Library | None = None,
     pip_threshold: float = 0.5,
@@ -68,8 +71,12 @@ def update_output_only(
     one ``drift`` equation per regressed state and one ``diffusion`` equation (the diagonal
     ``Gamma_ii = (G G^T)_ii``, units of velocity^2 / s) per velocity. ``previous``,
     ``forget`` and ``allow_repeat``: a re-update, as in :func:`update_input_output` (drift and diffusion).
+    ``xdot``, ``xdot_names``: measured rates; not taken yet (``x=None`` with accelerometers
+    alone is refused in one line naming what is missing, :func:`~dtwin_jax.accelerometers.output_only_refusal`).
     """
     start = time.perf_counter()
+    if x is None or xdot is not None:
+        output_only_refusal(nominal, xdot, xdot_names)
     rec = check_records(t, x, None, None, nominal)
     if np.any(np.asarray(nominal.F0) != 0):
         raise DataError("output-only updates do not take a nominal F0 yet: set it to zero and keep the constant term '1' in the library")
