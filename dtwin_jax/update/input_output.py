@@ -209,7 +209,8 @@ def update_input_output(
             "rates": rate_source,
             "measured_states": [names[i] for i in x_index],
             "measured_rates": [names[i] for i in xdot_index],
-            **({"layout": "accelerometers", "states": "anchored kinematic RTS"} if accelerometers else {}),
+            "layout": _layout_name(nominal, x_index, xdot_index),
+            **({"states": "anchored kinematic RTS"} if accelerometers else {}),
             "input_interpolation": interpolation,
             "input_interpolation_chosen_by": interpolation_chosen_by,
             "input_noise_std": None if noise_var is None else np.sqrt(noise_var).tolist(),
@@ -241,10 +242,25 @@ def update_input_output(
     return _with_model_error(result, rec, x_index, xs)
 
 
+def _layout_name(nominal, x_index, xdot_index) -> str:
+    """The sensor layout, in the words of the README's sensors table."""
+    every, positions = set(range(nominal.m)), set(range(nominal.m)) - set(nominal.velocity_index)
+    if not x_index:
+        return "accelerometers"
+    if set(x_index) == every:
+        return "states and rates" if set(xdot_index) >= set(nominal.velocity_index) else (
+            "states and some rates" if xdot_index else "states")
+    if set(x_index) == positions and not xdot_index:
+        return "displacement"
+    return "partial states"
+
+
 def _with_model_error(result: UpdateResult, rec, x_index, xs) -> UpdateResult:
     """The result with the twin's free-run error on its training data
     (``preprocessing["model_error_sd"]``, :mod:`dtwin_jax.model_error`), which predictions
     add to their band; a warning instead when that free run fails."""
+    if not x_index:  # nothing measured to compare a free run with (accelerometers alone)
+        return result
     start = time.perf_counter()
     sd, why = training_model_error(result.twin, rec.t, rec.x, rec.u, x_index, xs[:, 0])
     preprocessing = {**result.preprocessing, "model_error_sd": sd}
