@@ -116,10 +116,11 @@ def check_silverbox(text: str) -> None:
     ratio, samples = _numbers(_line(text, "ratio: "))
     assert twin < 0.6 and ratio > 20.0 and within < 0.5, (twin, ratio, within)
     assert samples == 26193
-    # The band with the training data's free-run error added (measured 97.3% within the
-    # training range, 90.8% of the whole arrow); parameter uncertainty alone covers 5%.
-    arrow, inside = _numbers(_line(text, "band with model error: covers "))
-    assert 90.0 < inside < 99.0 and arrow > 85.0, (inside, arrow)
+    # The default band: posterior draws and the twin's model error. This short run's model
+    # error is larger (a twin from 2 realizations): measured 99.8% within the training range,
+    # 99.1% of the arrow (the full study, examples/silverbox.py: 96.2% and 91.0%).
+    arrow, inside = _numbers(_line(text, "95% band: "))[1:]
+    assert inside > 95.0 and arrow > 95.0, (inside, arrow)
 
 
 CHECKS = {
