@@ -39,7 +39,7 @@ from dtwin_jax import SamplerSettings, sampler, systems, update_input_output, zo
 from dtwin_jax.measurement import measure
 
 sys.path.insert(0, str(Path(__file__).parent))
-from zoo import score  # noqa: E402
+from zoo import score
 
 P0, V_S = 0.1, 10.0  # the sampler's starting hyperparameters
 

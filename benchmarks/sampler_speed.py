@@ -29,10 +29,10 @@ def main():
             draws = 500
             ms = {}
             for swap in (True, False):
-                run = lambda k: S.sample_jit(k, st, num_draws=draws, num_burnin=0, num_chains=4, swap=swap)  # noqa: E731
-                run(jax.random.key(0)).gamma.block_until_ready()
+                kwargs = {"num_draws": draws, "num_burnin": 0, "num_chains": 4, "swap": swap}
+                S.sample_jit(jax.random.key(0), st, **kwargs).gamma.block_until_ready()
                 t0 = time.perf_counter()
-                run(jax.random.key(1)).gamma.block_until_ready()
+                S.sample_jit(jax.random.key(1), st, **kwargs).gamma.block_until_ready()
                 ms[swap] = time.perf_counter() - t0
             dt = ms[True]
             print(f"| {K} | {N} | {draws / dt:.0f} | {1e3 * dt / draws / 4:.3f} | {1e3 * ms[False] / draws / 4:.3f} |")

@@ -91,7 +91,7 @@ def test_swap_returns_the_factorisation_of_the_model_it_keeps():
     gamma = jnp.zeros(K, bool).at[jnp.asarray([0, 2])].set(True)
     seen = set()
     for i in range(20):
-        new, (slot_idx, chol, logdet, mean, quad) = S._swap(
+        new, (slot_idx, _, logdet, _, quad) = S._swap(
             jax.random.key(i), gamma, _factor(stats, gamma, v_s, K), v_s, stats, S.SpikeSlabPrior())
         seen.add(tuple(np.flatnonzero(np.asarray(new))))
         g = np.asarray(new)
