@@ -370,6 +370,88 @@ def _sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrior, R: int)
     return state[5], changed, initial
 
 
+def _swap(key, gamma, current, v_s, stats: SuffStats, prior: SpikeSlabPrior):
+    """One Metropolis-Hastings exchange move on the indicators at fixed ``v_s``.
+
+    Single-indicator Gibbs updates cross between two models that explain the data with
+    different, nearly collinear terms (``x2*Abs(x2)`` against ``x2 + x2**3``) only through
+    an intermediate model holding both or neither, which the marginal likelihood can make
+    very improbable: the chain then stays in whichever it found first. The exchange goes
+    straight across: an active term ``j`` (uniform) is proposed to be replaced by an
+    inactive ``k`` drawn with probability proportional to ``cos^2(L_j, L_k)`` (the squared
+    uncentred cosine of their columns, from the Gram), and the move is accepted on the
+    collapsed ``p(y | gamma, v_s)`` (the model size, hence the prior of ``gamma``, is
+    unchanged). The proposal's reverse draws ``k`` among the active terms of the new model
+    and ``j`` among its inactive ones with the same weights, so the Hastings ratio is
+    ``sum_{i inactive} w_ji / sum_{i inactive after} w_ki``. It leaves
+    ``p(gamma | y, v_s, p0)`` invariant (tests/test_ambiguity.py checks it against
+    enumeration).
+
+    **Arguments:**
+
+    - ``key``: PRNG key.
+    - ``gamma``: ``(K,)`` bool, the indicators after the sweep.
+    - ``current``: the factorisation of ``gamma``'s active block in ``R`` slots,
+      ``(slot_idx (R,), chol (R, R), logdet (), mean (R,), quad ())`` as
+      :func:`_factor_slots` gives it.
+    - ``v_s``, ``stats``, ``prior``: as in :func:`step`.
+
+    **Returns:**
+
+    ``(gamma (K,), factorisation)``: the proposal's when accepted, else the inputs.
+    """
+    slot_idx, chol, logdet, mean, quad = current
+    K = gamma.shape[0]
+    R = slot_idx.shape[0]
+    G, b = stats.gram, stats.xty
+    dtype = G.dtype
+    k_j, k_k, k_u = jax.random.split(key, 3)
+    norm2 = jnp.maximum(jnp.diagonal(G), jnp.finfo(dtype).tiny)
+
+    def weights(i):  # squared cosines of column i with every column, floored so every exchange has a reverse
+        return G[i] ** 2 / (norm2[i] * norm2) + 1e-12
+
+    r = jnp.sum(gamma)
+    possible = (r >= 1) & (r < K)
+    j = jax.random.categorical(k_j, jnp.where(gamma, 0.0, -jnp.inf))
+    out = ~gamma
+    w_j = weights(j)
+    k = jax.random.categorical(k_k, jnp.where(out, jnp.log(w_j), -jnp.inf))
+    w_k = weights(k)
+    forward = jnp.sum(jnp.where(out, w_j, 0.0))
+    backward = jnp.sum(jnp.where(out, w_k, 0.0)) - w_k[k] + w_k[j]
+    # The exchanged model's log-determinant and quadratic form from the current factor:
+    # remove j (P = A^-1: logdet + log P_jj, quad - mean_j^2 / P_jj), then add k with
+    # P_-j = P - p p^T / P_jj (p = P e_j): O(R^2), no new factorisation unless accepted.
+    occupied = slot_idx < K
+    slot = jnp.argmax(slot_idx == j)
+    g_k = G[k, jnp.minimum(slot_idx, K - 1)] * occupied
+    solved = cho_solve((chol, True), jnp.stack([g_k, jnp.eye(R, dtype=dtype)[slot]], axis=1))
+    u, p = solved[:, 0] * occupied, solved[:, 1] * occupied
+    p_jj = p[slot]
+    gp = g_k @ p
+    s = G[k, k] + 1.0 / v_s - (g_k @ u - gp**2 / p_jj)
+    t = b[k] - (g_k @ mean - gp * mean[slot] / p_jj)
+    logdet_n = logdet + jnp.log(p_jj) + jnp.log(s)
+    quad_n = quad - mean[slot] ** 2 / p_jj + t**2 / s
+    rf = r.astype(dtype)
+    log_ratio = (
+        _log_marginal(rf, logdet_n, quad_n, v_s, stats, prior)
+        - _log_marginal(rf, logdet, quad, v_s, stats, prior)
+        + jnp.log(forward)
+        - jnp.log(backward)
+    )
+    # A degenerate exchange (s <= 0 by rounding: NaN) compares False and is rejected.
+    accept = possible & (s > 0) & (jnp.log(jax.random.uniform(k_u, dtype=dtype)) < log_ratio)
+    new_idx = jnp.where(slot_idx == j, k, slot_idx).astype(slot_idx.dtype)
+
+    def exchanged(_):
+        return (new_idx,) + _factor_slots(stats, new_idx, v_s)[:4]
+
+    gamma = jnp.where(accept, gamma.at[j].set(False).at[k].set(True), gamma)
+    return gamma, jax.lax.cond(accept, exchanged, lambda _: current, None)
+
+
 def _max_active(K: int, max_active: int | None) -> int:
     return min(K, 32) if max_active is None else min(K, int(max_active))
 
@@ -380,11 +462,14 @@ def step(
     stats: SuffStats,
     prior: SpikeSlabPrior = SpikeSlabPrior(),
     max_active: int | None = None,
+    swap: bool = True,
 ) -> tuple[GibbsState, GibbsInfo]:
     """One Gibbs sweep. Pure: the same key and state give the same result.
 
     ``max_active`` (static, default ``min(K, 32)``) caps the number of active terms; the
-    sampler then targets the prior truncated to models of at most that size.
+    sampler then targets the prior truncated to models of at most that size. ``swap``
+    (static): after the indicator sweep, one Metropolis-Hastings exchange of an active term
+    for a correlated inactive one (:func:`_swap`); False gives the plain Gibbs sweep.
     """
     k_ind, k_gamma, k_theta = jax.random.split(key, 3)
     K = stats.gram.shape[0]
@@ -404,6 +489,11 @@ def step(
 
     # Most sweeps flip nothing: then the sweep's own factorisation (same gamma, same v_s) serves.
     slot_idx, chol, logdet, mean, quad = jax.lax.cond(changed, refactor, lambda _: initial, None)
+    if swap:
+        # A key of its own (folded, not split), so the sweep's draws are those of swap=False.
+        gamma, (slot_idx, chol, logdet, mean, quad) = _swap(
+            jax.random.fold_in(key, 1), gamma, (slot_idx, chol, logdet, mean, quad), state.v_s, stats, prior
+        )
     resid = jnp.maximum(stats.yty - quad, 1e-300)
     sigma2 = (prior.b_sigma + 0.5 * resid) * jnp.exp(-log_g[0])
 
@@ -432,9 +522,10 @@ def run_chain(
     num_steps: int,
     prior: SpikeSlabPrior = SpikeSlabPrior(),
     max_active: int | None = None,
+    swap: bool = True,
 ) -> tuple[GibbsState, GibbsTrace]:
     """``num_steps`` sweeps under ``lax.scan``; returns the last state and every draw."""
-    return _run_keys(jax.random.split(key, num_steps), state, stats, prior, max_active)
+    return _run_keys(jax.random.split(key, num_steps), state, stats, prior, max_active, swap)
 
 
 def sample(
@@ -451,6 +542,7 @@ def sample(
     chain_method: str | None = None,
     progress: bool = False,
     init_strategy: str = "dispersed",
+    swap: bool = True,
 ) -> GibbsTrace:
     """Standardise, run ``num_chains`` chains (vmapped) and return draws in physical units.
 
@@ -467,7 +559,8 @@ def sample(
     vmapped indicator loop 2-4x slower per chain (measured in benchmarks/sampler_speed.py).
     Jittable and vmappable (over ``key`` and ``stats``) when ``progress`` is False.
     ``progress``: show a progress bar of the sweeps (runs :func:`sample_in_chunks`, whose
-    draws are the same).
+    draws are the same). ``swap``: each sweep ends with an exchange move between correlated
+    terms (:func:`_swap`); False runs the plain Gibbs sweep.
     """
     if progress:
         from dtwin_jax.progress import Bar, tick
@@ -476,12 +569,12 @@ def sample(
         with Bar(True, num_chains * -(-total // CHUNK) * CHUNK, "Gibbs sweeps"):
             trace = sample_in_chunks(key, stats, num_draws=num_draws, num_burnin=num_burnin, num_chains=num_chains,
                                      prior=prior, p0=p0, v_s=v_s, max_active=max_active, chain_method=chain_method,
-                                     init_strategy=init_strategy, on_chunk=tick)
+                                     init_strategy=init_strategy, on_chunk=tick, swap=swap)
         return jax.tree.map(jnp.asarray, trace)
     scaled, col, ys = standardize(stats)
     total = num_burnin + num_draws
     keys, states = _setup(key, scaled, prior, p0, v_s, max_active, num_chains, total, init_strategy)
-    _, trace = _run_chains(keys, states, scaled, prior, max_active, chain_method or default_batch_method())
+    _, trace = _run_chains(keys, states, scaled, prior, max_active, chain_method or default_batch_method(), swap)
     trace = jax.tree.map(lambda a: a[:, num_burnin:], trace)
     factor = ys / col
     return trace._replace(theta=trace.theta * factor, sigma2=trace.sigma2 * ys**2)
@@ -513,6 +606,7 @@ def sample_in_chunks(
     on_chunk=None,
     call=_plain_call,
     quick: bool = False,
+    swap: bool = True,
 ) -> GibbsTrace:
     """:func:`sample` run from Python in calls of ``chunk`` sweeps: the same draws (as host
     arrays, leading axes ``(num_chains, num_draws)``), from compiled programs that depend
@@ -526,12 +620,12 @@ def sample_in_chunks(
     keeps them for new processes; the default calls ``fn(*args)``. ``quick``: the chunk
     program compiled without LLVM's optimizations (:mod:`dtwin_jax.quick_compile`): the same
     indicators, coefficients to rounding; for short runs, where its compilation outweighs
-    its run.
+    its run. ``swap``: as in :func:`sample`.
     """
     scaled, col, ys, keys, states, run, static = _chunk_start(
         key, stats, num_draws=num_draws, num_burnin=num_burnin, num_chains=num_chains, prior=prior, p0=p0, v_s=v_s,
         max_active=max_active, chain_method=chain_method, init_strategy=init_strategy, chunk=chunk, quick=quick,
-        call=call)
+        call=call, swap=swap)
     total = num_burnin + num_draws
     parts = []
     for i in range(keys.shape[1] // chunk):
@@ -566,7 +660,7 @@ def compile_chunked(K: int, **settings) -> None:
 
 
 def _chunk_start(key, stats, *, num_draws, num_burnin, num_chains, prior, p0, v_s, max_active, chain_method,
-                 init_strategy, chunk, quick, call=_plain_call) -> tuple:
+                 init_strategy, chunk, quick, call=_plain_call, swap=True) -> tuple:
     """:func:`sample_in_chunks`' set-up: ``(scaled, col, ys, keys (C, chunks * chunk),
     states, run, static)``, ``run(keys, states, scaled, *static)`` the chunk program."""
     settings = (prior, float(p0), float(v_s), max_active, num_chains, init_strategy)
@@ -577,7 +671,7 @@ def _chunk_start(key, stats, *, num_draws, num_burnin, num_chains, prior, p0, v_
     total = num_burnin + num_draws
     keys = _step_keys(keys, total, -(-total // chunk) * chunk)
     run = _run_chains_quick if quick else _run_chains_jit
-    return scaled, col, ys, keys, states, run, (prior, max_active, chain_method or default_batch_method())
+    return scaled, col, ys, keys, states, run, (prior, max_active, chain_method or default_batch_method(), swap)
 
 
 @quick_jit(static_argnums=(2, 3, 4, 5, 6, 7))
@@ -674,11 +768,11 @@ def _setup(key, scaled, prior, p0, v_s, max_active, num_chains, total, init_stra
     return keys, states
 
 
-def _run_keys(keys, state, stats, prior, max_active=None):
+def _run_keys(keys, state, stats, prior, max_active=None, swap=True):
     """Like :func:`run_chain` but from explicit per-step keys."""
 
     def one(state, key):
-        state, info = step(key, state, stats, prior, max_active)
+        state, info = step(key, state, stats, prior, max_active, swap)
         return state, GibbsTrace(state.gamma, state.theta, state.sigma2, state.v_s, state.p0, info.log_marginal)
 
     return jax.lax.scan(one, state, keys)
@@ -698,19 +792,20 @@ def batch_map(fn, method: str, *args):
     raise ValueError(f"unknown batch method {method!r} (vectorized or sequential)")
 
 
-def _run_chains(keys, states, stats, prior, max_active, method):
-    return batch_map(lambda k, s: _run_keys(k, s, stats, prior, max_active), method, keys, states)
+def _run_chains(keys, states, stats, prior, max_active, method, swap=True):
+    return batch_map(lambda k, s: _run_keys(k, s, stats, prior, max_active, swap), method, keys, states)
 
 
-_run_chains_jit = jax.jit(_run_chains, static_argnums=(3, 4, 5))
+_run_chains_jit = jax.jit(_run_chains, static_argnums=(3, 4, 5, 6))
 # For short runs (a few terms, a few thousand sweeps): compiles in ~40% less time, runs ~2x longer.
-_run_chains_quick = quick_jit(static_argnums=(3, 4, 5))(_run_chains)
+_run_chains_quick = quick_jit(static_argnums=(3, 4, 5, 6))(_run_chains)
 
 
 sample_jit = jax.jit(
     sample,
     static_argnames=(
         "num_draws", "num_burnin", "num_chains", "prior", "max_active", "chain_method", "progress", "init_strategy",
+        "swap",
     ),
 )
 sample_jit.__doc__ = "``jax.jit`` of :func:`sample` (``progress`` must be False)."

@@ -31,6 +31,8 @@ class SamplerSettings:
     p0: float = 0.1
     v_s: float = 10.0
     max_active: int | None = None
+    # Each sweep ends with an exchange move between correlated terms (sampler._swap).
+    swap: bool = True
 
 
 @dataclass

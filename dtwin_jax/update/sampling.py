@@ -75,4 +75,5 @@ def _sampler_kwargs(settings: SamplerSettings) -> dict:
         max_active=settings.max_active,
         p0=settings.p0,
         v_s=settings.v_s,
+        swap=settings.swap,
     )
