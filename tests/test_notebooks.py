@@ -56,6 +56,11 @@ DURATION = 1.0             # as long as the training window: one compiled simula
 HORIZON = 1.0
 PLOT_SECONDS = 0.5
 """,
+    "positioning_stage.ipynb": """
+DURATION = 8.0
+DRAWS = 4
+SEED = 0
+""",
     "silverbox.ipynb": """
 REALIZATIONS = 2
 DRAWS = 2
@@ -123,10 +128,20 @@ def check_silverbox(text: str) -> None:
     assert inside > 95.0 and arrow > 95.0, (inside, arrow)
 
 
+def check_positioning_stage(text: str) -> None:
+    """8 s records, 4 posterior twins. ``python examples/positioning_stage.py`` runs the full
+    study (25 s, 100 draws: 1.77 mm against the textbook model's 4.96 mm)."""
+    textbook = _numbers(_line(text, "textbook free run: "))[0]
+    twin = _numbers(_line(text, "twin free run: "))[0]
+    print("positioning stage notebook:", textbook, twin)
+    assert twin < 0.7 * textbook, (twin, textbook)  # the issue's bar: 30% below the textbook model
+
+
 CHECKS = {
     "framework1_examples.ipynb": (check_framework1, 2),  # (check, least number of figures)
     "framework2_output_only.ipynb": (check_framework2, 2),
     "prediction_and_degradation.ipynb": (check_prediction, 4),
+    "positioning_stage.ipynb": (check_positioning_stage, 2),
     "silverbox.ipynb": (check_silverbox, 2),
 }
 
