@@ -44,22 +44,7 @@ from zoo import score
 P0, V_S = 0.1, 10.0  # the sampler's starting hyperparameters
 
 
-def drag_and_coulomb(seed: int, friction_ratio: float = 0.08, level: float = 0.02) -> zoo.Member:
-    """A quadratic-drag zoo member with Coulomb friction added: force ratio
-    ``friction_ratio`` of the per-sample force std ``B / sqrt(dt)`` (the coulomb family's
-    rule), measurement noise ``level``."""
-    member = zoo.draw_member(seed, "quadratic-drag")
-    ex = member.example
-    params = dict(ex.system.params)
-    mass, gain = float(params["mass"]), float(ex.system.nominal.B[0, 0])
-    force = friction_ratio * gain * zoo._WHITE_STD
-    params["friction"] = jnp.asarray(force)
-    params["friction_width"] = jnp.asarray(force / mass * zoo.FRICTION_TIME)
-    truth = dict(ex.true_terms["x2"]) | {"sign(x2)": -force / mass}
-    system = systems.PerturbedSystem(ex.system.nominal, zoo.sdof_perturbation, params)
-    ex = ex._replace(system=system, true_terms={"x2": truth}, name=f"drag-coulomb-{seed:04d}",
-                     description=ex.description + f"; plus Coulomb friction {force:.5g} sign(x2)")
-    return member._replace(example=ex, family="drag+coulomb", noise_level=level)
+drag_and_coulomb = zoo.drag_and_coulomb
 
 
 def update(member: zoo.Member, duration: float, settings: SamplerSettings):

@@ -92,6 +92,7 @@ __all__ = [
     "Member",
     "draw",
     "draw_member",
+    "drag_and_coulomb",
     "members",
     "noise_level",
     "expected_z",
@@ -534,3 +535,25 @@ def members(num: int, seed: int = 0) -> list[systems.Example]:
     """`num` members with seeds `seed, seed + 1, ...`; the family cycles with the seed, so
     any `len(FAMILIES)` consecutive members hold every family once."""
     return [draw(seed + i) for i in range(num)]
+
+
+def drag_and_coulomb(seed: int, friction_ratio: float = 0.08, level: float = 0.02) -> Member:
+    """A near-equivalent member: a ``quadratic-drag`` member (``draw_member(seed,
+    "quadratic-drag")``) with Coulomb friction added, its force ``friction_ratio`` of the
+    per-sample force std ``B / sqrt(dt)`` (the coulomb family's rule), measured at ``level``.
+    Over the measured velocity range ``x2*Abs(x2) + sign(x2)`` and ``x2 + x2**3 + sign(x2)``
+    are close (issue 26 item 2; ``benchmarks/ambiguity.py``)."""
+    import jax.numpy as jnp
+
+    member = draw_member(seed, "quadratic-drag")
+    ex = member.example
+    params = dict(ex.system.params)
+    mass, gain = float(params["mass"]), float(ex.system.nominal.B[0, 0])
+    force = friction_ratio * gain * _WHITE_STD
+    params["friction"] = jnp.asarray(force)
+    params["friction_width"] = jnp.asarray(force / mass * FRICTION_TIME)
+    truth = dict(ex.true_terms["x2"]) | {"sign(x2)": -force / mass}
+    system = systems.PerturbedSystem(ex.system.nominal, sdof_perturbation, params)
+    ex = ex._replace(system=system, true_terms={"x2": truth}, name=f"drag-coulomb-{seed:04d}",
+                     description=ex.description + f"; plus Coulomb friction {force:.5g} sign(x2)")
+    return member._replace(example=ex, family="drag+coulomb", noise_level=level)
