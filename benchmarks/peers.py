@@ -310,7 +310,9 @@ def main():
         with open(a.md, "w") as f:
             f.write("# Peer benchmark: dtwin-jax against pysindy on the zoo\n\n"
                     f"    python benchmarks/peers.py {' '.join(sys.argv[1:])}\n\n"
-                    f"pysindy {ps.__version__}; {config['machine']}.\n\n{out}\n\n"
+                    f"pysindy {ps.__version__}; {config['machine']}. Set-up and the fixed hyperparameter rules: "
+                    "the docstring of `benchmarks/peers.py`. `s / member`: wall seconds per fit, compilation "
+                    f"included, on a machine shared with other jobs.\n\n{out}\n\n"
                     f"Exact support by family (members with exactly the true terms):\n\n{family_table(rows)}\n")
 
 
