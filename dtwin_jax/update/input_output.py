@@ -259,9 +259,6 @@ def _clear_of_jumps(lib, nominal, xs, x, x_index):
     velocity to size its noise). Near a reversal the denoised velocity's sign is a coin flip
     (0.7-0.8% of the samples at 2% noise), and those rows alone made ``x2 + x2**3`` beat
     ``x2*Abs(x2)`` with the friction 10% low (benchmarks/ambiguity.py)."""
-    import os
-    if os.environ.get("DTWIN_NO_JUMP_CENSOR"):
-        return None
     names = nominal.state_names
     joined = " ".join(lib.names)
     velocities = [v for v in nominal.velocity_index if f"sign({names[v]})" in joined and v in x_index]
