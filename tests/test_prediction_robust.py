@@ -124,11 +124,14 @@ def test_friction_twin_from_the_cli_predicts_25_s(friction_cli, capsys, monkeypa
 
 
 def _diverging(tmp_path, friction_cli):
-    """The friction twin saved with negative damping, +40 x2 in every draw: unstable."""
+    """The friction twin saved with negative damping, +40 x2 and nothing else in every draw:
+    unstable (another term, such as a nonlinear damping, could bound a draw's growth)."""
     tmp, _ = friction_cli
     result = load_twin(tmp / "twin")
     eq = result.equations[0]
     k = eq.names.index("x2")
+    eq.theta[...] = 0.0
+    eq.gamma[...] = False
     eq.theta[..., k] = 40.0
     eq.gamma[..., k] = True
     save_twin(result, tmp_path / "bad")
