@@ -57,7 +57,7 @@ HORIZON = 1.0
 PLOT_SECONDS = 0.5
 """,
     "positioning_stage.ipynb": """
-DURATION = 8.0
+DURATION = 5.0
 DRAWS = 4
 SEED = 0
 """,
@@ -129,7 +129,7 @@ def check_silverbox(text: str) -> None:
 
 
 def check_positioning_stage(text: str) -> None:
-    """8 s records, 4 posterior twins. ``python examples/positioning_stage.py`` runs the full
+    """5 s records, 4 posterior twins. ``python examples/positioning_stage.py`` runs the full
     study (25 s, 100 draws: 1.77 mm against the textbook model's 4.96 mm)."""
     textbook = _numbers(_line(text, "textbook free run: "))[0]
     twin = _numbers(_line(text, "twin free run: "))[0]
