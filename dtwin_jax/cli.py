@@ -109,6 +109,9 @@ def _parser() -> argparse.ArgumentParser:
     pr.add_argument("--seed", type=int, default=0, help="random seed: draws and Brownian paths (default 0)")
     pr.add_argument("--out", required=True, help="PREDICTION.npz: t, mean, lower, upper")
     pr.add_argument("--quiet", action="store_true", help="no progress output")
+    pr.add_argument("--no-model-error", action="store_true",
+                    help="the band of the posterior draws alone, without the twin's model error (its free-run error "
+                         "on its training data)")
 
     up = sub.add_parser("update", help="re-update a saved twin with a new measurement window")
     up.add_argument("twin", metavar="TWIN_DIR", help="a folder written by discover --save-twin")
@@ -383,7 +386,8 @@ def _predict(args) -> int:
         # PredictionWarning (a few draws dropped) is printed below as one line, as out["warnings"].
         warnings.simplefilter("ignore", PredictionWarning)
         try:
-            out = predict(twins, new["x0"], new["t"], new.get("u"), key=key_paths, progress=not args.quiet)
+            out = predict(twins, new["x0"], new["t"], new.get("u"), key=key_paths, progress=not args.quiet,
+                          model_error=not args.no_model_error)
         except (RuntimeError, jax.errors.JaxRuntimeError) as e:  # no traceback from a solver, whatever it hit
             raise DataError(f"the prediction failed ({type(e).__name__}): "
                             f"{(str(e).strip().splitlines() or [''])[0][:300]}") from None

@@ -117,6 +117,14 @@ def test_friction_twin_from_the_cli_predicts_25_s(friction_cli, capsys, monkeypa
         mean, lower, upper = z["mean"], z["lower"], z["upper"]
     assert mean.shape == (25000, 2) and np.all(np.isfinite(mean))
     assert np.all(lower <= mean + 1e-12) and np.all(mean <= upper + 1e-12)
+    # The band holds the twin's model error (saved with it) unless --no-model-error.
+    assert len(result.preprocessing["model_error_sd"]) == 2 and result.preprocessing["model_error_sd"][0] > 0
+    assert main(["predict", str(tmp / "twin"), "--input", str(tmp / "new.npz"), "--draws", "20", "--quiet",
+                 "--no-model-error", "--out", str(tmp / "bare.npz")]) == 0
+    with np.load(tmp / "bare.npz") as z:
+        np.testing.assert_allclose(z["mean"], mean)
+        assert np.all(z["upper"] - z["lower"] <= upper - lower + 1e-12)
+        assert np.mean(z["upper"][:, 0] - z["lower"][:, 0]) < np.mean(upper[:, 0] - lower[:, 0])
     # The posterior-mean twin against the true system (tanh friction) on the new input.
     with np.load(tmp / "new.npz") as z:
         truth = np.asarray(systems.simulate(ex.system, z["x0"], z["t"], z["u"])[0])
