@@ -76,7 +76,7 @@ def correct_input_noise(stats: sampler.SuffStats, lib: Library, nominal: LinearS
 
 @functools.partial(jax.jit, static_argnames=("half_width", "correct_inputs"))
 def smoothed_input_output_stats(
-    nominal: LinearSecondOrder, lib: Library, xs, u, xdot, half_width: int, *, correct_inputs: bool = True
+    nominal: LinearSecondOrder, lib: Library, xs, u, xdot, half_width: int, *, correct_inputs: bool = True, keep=None
 ) -> tuple[sampler.SuffStats, jax.Array | None]:
     """Statistics of every regressed equation from denoised states, pooled over records.
 
@@ -84,14 +84,22 @@ def smoothed_input_output_stats(
     measured (or estimated) rates; ``half_width`` (static) of the noise filters. With
     ``correct_inputs`` (and an ``input`` family in ``lib``) the input noise is estimated
     (:func:`denoise.input_noise_variance`) and removed. Returns ``(SuffStats batched over
-    equations, input noise variance (n,) or None)``. Jitted (``half_width`` and
+    equations, input noise variance (n,) or None)``. ``keep (R, N)`` bool: only those rows
+    enter the statistics (the input noise is still estimated from whole records); a mask, not
+    a subset, so one compiled program serves every count. Jitted (``half_width`` and
     ``correct_inputs`` static; ``lib`` holds no arrays).
     """
     xs, u, xdot = (jnp.asarray(a) for a in (xs, u, xdot))
     m, n = xs.shape[-1], u.shape[-1]
     xs_flat, u_flat = xs.reshape(-1, m), u.reshape(-1, n)
     Y = input_output_targets(nominal, xs_flat, u_flat, xdot.reshape(-1, m))
-    stats = equation_stats(lib(xs_flat, u_flat), Y)
+    L = lib(xs_flat, u_flat)
+    if keep is None:
+        stats = equation_stats(L, Y)
+    else:
+        w = jnp.asarray(keep, L.dtype).reshape(-1, 1)
+        stats = equation_stats(L * w, Y * w)
+        stats = stats._replace(n=jnp.full_like(stats.n, jnp.sum(w)))
     if not (correct_inputs and lib.uses_inputs):
         return stats, None
     noise_var = input_noise_variance(nominal, xs, u, xdot, half_width)

@@ -37,7 +37,7 @@ from dtwin_jax.systems import (
     check_interpolation,
     resolve_interpolation,
 )
-from dtwin_jax.targets import correct_input_noise, input_output_targets, smoothed_input_output_stats
+from dtwin_jax.targets import input_output_targets, smoothed_input_output_stats
 from dtwin_jax.update.lifecycle import (
     check_previous,
     check_repeat,
@@ -171,13 +171,11 @@ def update_input_output(
             check_columns(L, lib.names)
         del L
         # The same jitted chain as the batched studies (dtwin_jax.studies).
-        stats, noise_var = smoothed_input_output_stats(nominal, lib, xs, rec.u, rates, hw, correct_inputs=correct)
+        # Rows where a sign(v) column may be wrong are left out (measured rates).
         keep = _clear_of_jumps(lib, nominal, xs, rec.x, x_index) if rate_source == "measured" else None
-        if keep is not None:  # rows where a sign(v) column may be wrong left out
-            sub = (a[keep][None] for a in (xs, rec.u, rates))
-            stats = smoothed_input_output_stats(nominal, lib, *sub, hw, correct_inputs=False)[0]
-            if noise_var is not None:
-                stats = correct_input_noise(stats, lib, nominal, noise_var)
+        stats, noise_var = smoothed_input_output_stats(nominal, lib, xs, rec.u, rates, hw, correct_inputs=correct,
+                                                       keep=keep)
+        if keep is not None:
             smoothing_info = {**(smoothing_info or {}), "rows_near_velocity_reversals_left_out": int((~keep).sum())}
         n_eff = None
         if smoothing == "weak":  # the Savitzky-Golay rates above serve the residual checks only
