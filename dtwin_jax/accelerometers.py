@@ -6,37 +6,28 @@ integration drifts (2 s at 1 kHz and 5% noise: the integrated noise exceeds the
 displacement). The low frequencies are anchored by the equation of motion instead. Each
 degree of freedom is the kinematic chain ``dq/dt = v, dv/dt = a`` driven by the measured
 acceleration (held input and trapezoidal smooth part, as
-:func:`dtwin_jax.denoise.kinematic_smoother`), and every sample adds the quasi-static
-pseudo-measurement
+:func:`dtwin_jax.denoise.kinematic_smoother`), and every sample adds the pseudo-measurement
 
-    K q + C v = B u + F0 - M a + M h(q, v, u)          (one row per degree of freedom)
+    K q + C v - M h(q, v, u) = B u + F0 - M a          (one row per degree of freedom)
 
-with ``h`` the perturbation known so far (zero at first). Its variance is set so that the two
-cross over at ``CROSSOVER`` times below the lowest nominal natural frequency: above it the
-states are the integrated accelerations, below it the anchor (a Rauch-Tung-Striebel smoother
-does the split optimally for that noise model, and handles the record's ends).
+with ``h`` the perturbation known so far, linearized at the previous states (a Rauch-Tung-
+Striebel smoother with a measurement matrix per sample). While ``h`` is still being found, the
+anchor's noise is raised so that it takes over only below the lowest natural frequency over
+``CROSSOVER``; once the loop settles, the anchor keeps the accelerometers' own noise.
 
-The anchor is only as right as ``h``: with ``h = 0`` it pulls the states toward the nominal
-model (example 1, 2 s, 3% noise: displacement 4-5% off, the cubic 10-30% low and a dozen
-spurious terms selected). So the discovered twin goes into the loop: a short sampler run on
-the states selects terms and their coefficients, their ``h`` along the trajectory enters the
-anchor, the smoother runs again, and so on (a relaxed fixed-point iteration: undamped, the
-estimate oscillates about the fixed point with a ratio near -1/2). The short runs regress
-high-passed targets and library (:func:`high_pass`): the states' errors lie below the
-crossover, and there they would call for spurious terms. With the true ``h`` in the anchor
-the cubic of example 1 comes out within 0.5% of the states-known fit; with the loop, within
-0.2% (3 seeds, exact support).
+The loop (:func:`accelerometer_states`) starts from the equivalent linear model (the nominal
+plus the linear correction that fits the accelerations best, found without any state
+estimate), then alternates a short sampler run on the weak-form statistics at the states
+(:mod:`dtwin_jax.weak_form_accelerometers`: the nominal part of every row exact, whatever the
+states) with a Gauss-Newton step of the smoother. The final regression is that weak form at
+the final states; draws of the states' estimation error (Durbin and Koopman's simulation
+smoother) put their effect on the selected terms into its row covariance.
 
-The regression target stays the *measured* acceleration minus the nominal rate at the
-estimated states (:func:`dtwin_jax.targets.input_output_targets`): the smoother's model never
-replaces the measurement, so it cannot absorb the perturbation. Only the terms selected by
-the sampler enter the anchor (a full-library fit would fit any state error and anchor
-nothing).
+Measured (``benchmarks/zoo.py --layout accelerometers``; before, the plain fixed point with a
+high-passed pointwise regression: 60% exact support, 41% HDI coverage on 20 members): see the
+README's sensors table.
 
-Output-only (no force measured): the unknown white force is part of the pseudo-measurement's
-error, with variance ``Gamma M^2 / dt`` per sample; the crossover then falls about
-``sqrt(noise level)`` times the natural frequency, a high-pass integration whose cutoff the
-data choose.
+Output-only (no force measured) from accelerometers is refused (:func:`output_only_refusal`).
 """
 
 from __future__ import annotations
@@ -50,17 +41,20 @@ from dtwin_jax.errors import DataError
 from dtwin_jax.kalman import kalman_filter, rts_smoother
 from dtwin_jax.systems import LinearSecondOrder
 
-__all__ = ["CROSSOVER", "accelerometer_layout", "check_accelerometer_layout", "sampler_selection", "output_only_refusal", "anchored_smoother", "accelerometer_states"]
+__all__ = ["CROSSOVER", "ERROR_DRAWS", "accelerometer_layout", "check_accelerometer_layout", "sampler_selection",
+           "output_only_refusal", "anchored_smoother", "accelerometer_states"]
 
 # The anchor and the integrated accelerations cross over at the lowest natural frequency over
 # this factor. Example 1 (2 s, 3% noise), cubic coefficient with the true perturbation in the
 # anchor: 0.2% off at 2, 0.7% at 4, 2-5% at 6 (the integrated noise grows as the cube of it).
 CROSSOVER = 2.0
-# Fixed-point iteration of the anchor: relaxation (the undamped ratio is about -1/2, so 2/3
-# converges in a few steps), the most steps, and the relative change of the states that ends it.
-RELAXATION = 2.0 / 3.0
-MAX_ITERATIONS = 12
+# Gauss-Newton steps of the anchor's loop: the most, and the relative change of the states
+# that ends a phase (with the crossover, then without).
+MAX_ITERATIONS = 20
 TOLERANCE = 1e-4
+# Draws of the final states' estimation error: their effect on the selected terms enters the
+# regression's row covariance (errors in variables).
+ERROR_DRAWS = 16
 
 
 def check_accelerometer_layout(nominal: LinearSecondOrder, xdot_index) -> None:
@@ -155,15 +149,36 @@ def _drive(nominal: LinearSecondOrder, a, u):
 
 @jax.jit
 def _smooth(F, c, Q, H, z, r, m0, P0):
-    """RTS smoothed means ``(R, N, S)`` of records ``z (R, N, p)`` with drives ``c (R, N-1, S)``."""
-    def one(cc, zz, mm):
-        return rts_smoother(kalman_filter(F, cc, Q, H, None, r, zz, mm, P0), F)[0]
+    """RTS smoothed means ``(R, N, S)`` of records ``z (R, N, p)`` with drives ``c (R, N-1, S)``
+    and measurement matrices ``H (R, N, p, S)``."""
+    def one(cc, hh, zz, mm):
+        return rts_smoother(kalman_filter(F, cc, Q, hh, None, r, zz, mm, P0), F)[0]
 
-    return jax.vmap(one)(c, z, m0)
+    return jax.vmap(one)(c, H, z, m0)
 
 
-def anchored_smoother(nominal: LinearSecondOrder, dt: float, a, u=None, anchor=None, *,
-                      crossover: float = CROSSOVER, force_variance=None) -> tuple[np.ndarray, dict]:
+def _error_draws(F, Q, H, r, P0, num: int, seed: int) -> np.ndarray:
+    """``num`` draws ``(num, R, N, S)`` of the smoother's estimation error (Durbin and Koopman's
+    simulation smoother): states and measurements simulated from the model, minus what the
+    smoother makes of those measurements."""
+    R, N, p, S = H.shape
+    rng = np.random.default_rng(seed)
+    lam, V = np.linalg.eigh(Q)
+    Q_half = V * np.sqrt(np.maximum(lam, 0.0))
+    x = np.empty((num * R, N, S))
+    x[:, 0] = rng.standard_normal((num * R, S)) @ np.linalg.cholesky(P0).T
+    w = rng.standard_normal((num * R, N - 1, S)) @ Q_half.T
+    for k in range(N - 1):  # a short loop of small products (N steps)
+        x[:, k + 1] = x[:, k] @ F.T + w[:, k]
+    Hs = np.tile(H, (num, 1, 1, 1))
+    z = np.einsum("bnps,bns->bnp", Hs, x) + rng.standard_normal((num * R, N, p)) * np.sqrt(r)
+    est = _smooth(*(jnp.asarray(v) for v in (F, np.zeros((num * R, N - 1, S)), Q, Hs, z, r, np.zeros((num * R, S)), P0)))
+    return (x - np.asarray(est)).reshape(num, R, N, S)
+
+
+def anchored_smoother(nominal: LinearSecondOrder, dt: float, a, u=None, anchor=None, jacobian=None, *,
+                      crossover: float | None = CROSSOVER, force_variance=None, error_draws: int = 0,
+                      seed: int = 0) -> tuple[np.ndarray, dict]:
     """Displacements and velocities from measured accelerations, anchored by the equation of motion.
 
     **Arguments:**
@@ -173,11 +188,17 @@ def anchored_smoother(nominal: LinearSecondOrder, dt: float, a, u=None, anchor=N
     - ``a``: ``(R, N, d)`` measured accelerations of the degrees of freedom, m/s^2 (state units / s^2).
     - ``u``: ``(R, N, n)`` measured inputs, held over each step, or None (output-only: the force
       is unknown and white).
-    - ``anchor``: ``(R, N, d)`` force of the perturbation known so far, ``M h`` (force units), or
-      None (zero).
-    - ``crossover``: the anchor takes over below the lowest natural frequency over this.
+    - ``anchor``: ``(R, N, d)`` known force added to the anchor's right-hand side (force
+      units): the perturbation ``M h(x)`` known so far, or its linearization's constant part.
+    - ``jacobian``: ``(R, N, d, 2d)``, the perturbation's force ``M dh/dx`` at a previous
+      estimate (a Gauss-Newton step: the anchor then reads ``[K C] x - M dh/dx x``), or None.
+    - ``crossover``: the anchor's noise is raised so that it takes over only below the lowest
+      natural frequency over this (a perturbation not yet known cannot bias the states above
+      it); None: its noise is the accelerometers' alone (the perturbation is known).
     - ``force_variance``: ``(d,)`` variance per sample of the unmeasured force's error in the
       anchor (force units^2), added to its noise; None: zero.
+    - ``error_draws``: also return this many draws of the estimation error, ``(S, R, N, 2d)``
+      (``info["error_draws"]``), from ``seed``.
 
     **Returns:**
 
@@ -196,12 +217,14 @@ def anchored_smoother(nominal: LinearSecondOrder, dt: float, a, u=None, anchor=N
         z = z + np.asarray(u) @ np.asarray(nominal.B).T
     if anchor is not None:
         z = z + anchor
-    # Crossover where the anchor's displacement error r / K^2 meets the integrated noise
-    # sig_a^2 / w^4; the accelerations' own noise enters the anchor through M a.
-    w_c = w_min / crossover
-    r = (np.diag(K) * sig_a / w_c**2) ** 2 + (np.diag(M) * sig_a) ** 2
+    # The accelerations' own noise enters the anchor through M a; with a crossover, the
+    # anchor's displacement error r / K^2 meets the integrated noise sig_a^2 / w^4 there.
+    r = (np.diag(M) * sig_a) ** 2
+    if crossover is not None:
+        r = r + (np.diag(K) * sig_a / (w_min / crossover) ** 2) ** 2
     if force_variance is not None:
         r = r + np.asarray(force_variance)
+    r = np.maximum(r, 1e-300)
     I = np.eye(d)
     F = np.block([[I, dt * I], [0 * I, I]])
     c = np.concatenate([dt**2 * drive[..., :d], dt * drive[..., d:]], axis=-1)
@@ -209,19 +232,48 @@ def anchored_smoother(nominal: LinearSecondOrder, dt: float, a, u=None, anchor=N
     q_unit = np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
     for j in range(d):  # the trapezoid averages two noisy samples
         Q[np.ix_([j, d + j], [j, d + j])] = sig_a[j] ** 2 / 2 * q_unit
-    H = np.concatenate([K, C], axis=1)
+    H = np.broadcast_to(np.concatenate([K, C], axis=1), (R, N, d, 2 * d))
+    if jacobian is not None:
+        H = H - np.asarray(jacobian)
     # A diffuse prior at the scale of the quasi-static displacement and its velocity.
     q_var = np.var(np.linalg.solve(K, z.reshape(-1, d).T), axis=1) + 1e-300
     P0 = np.diag(1e4 * np.concatenate([q_var, q_var * np.diag(K) / np.diag(M)]))
     m0 = np.zeros((R, 2 * d))
-    s = _smooth(*(jnp.asarray(v) for v in (F, c, Q, H, z, np.maximum(r, 1e-300), m0, P0)))
-    return np.asarray(s), {"acceleration_noise_std": sig_a.tolist(), "anchor_noise_std": np.sqrt(r).tolist()}
+    s = _smooth(*(jnp.asarray(v) for v in (F, c, Q, H, z, r, m0, P0)))
+    info = {"acceleration_noise_std": sig_a.tolist(), "anchor_noise_std": np.sqrt(r).tolist()}
+    if error_draws:
+        info["error_draws"] = _error_draws(F, Q, np.asarray(H), r, P0, error_draws, seed)
+    return np.asarray(s), info
+
+
+def _linearized(nominal: LinearSecondOrder, lib, coef, x, u) -> tuple[np.ndarray, np.ndarray]:
+    """The perturbation's force ``M h(x) (R, N, d)`` under coefficients ``coef (q, K)`` and its
+    Jacobian in the states ``(R, N, d, m)``."""
+    R, N, m = x.shape
+    Mm, cf = jnp.asarray(nominal.M), jnp.asarray(coef)
+
+    def force(xx, uu):
+        return Mm @ (cf @ lib(xx[None], uu[None])[0])
+
+    xf, uf = jnp.asarray(x.reshape(-1, m)), jnp.asarray(np.reshape(u, (R * N, -1)))
+    value, jac = jax.vmap(lambda xx, uu: (force(xx, uu), jax.jacfwd(force)(xx, uu)))(xf, uf)
+    return np.asarray(value).reshape(R, N, -1), np.asarray(jac).reshape(R, N, -1, m)
 
 
 def accelerometer_states(nominal: LinearSecondOrder, dt: float, xdot, xdot_index, u, lib, select, *,
                          crossover: float = CROSSOVER, max_iterations: int = MAX_ITERATIONS,
-                         force_variance=None) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Every state and rate from accelerometers (and the force), the twin in the anchor's loop.
+                         interpolation: str = "held", error_draws: int = ERROR_DRAWS,
+                         seed: int = 0) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Every state and rate from accelerometers and the force, the twin in the anchor's loop.
+
+    The first states come from the anchor of the equivalent linear model (the nominal plus
+    the linear correction that best fits the accelerations, :func:`equivalent_linear`; the
+    nominal when that is not stable): a hardening spring larger than the nominal stiffness
+    would otherwise pull them 10% off. Then, in turn, a short sampler run on the weak-form
+    statistics at the states selects terms (``select``), and the anchored smoother runs
+    again with their force linearized at the states (Gauss-Newton: a cubic stiffer than the
+    nominal made the plain fixed point diverge). Once this settles with the crossover, it
+    goes on with the anchor at the accelerometers' own noise.
 
     **Arguments:**
 
@@ -229,31 +281,31 @@ def accelerometer_states(nominal: LinearSecondOrder, dt: float, xdot, xdot_index
     - ``dt``: sample step, s.
     - ``xdot``: ``(R, N, s)`` measured rates of the states ``xdot_index``; those of the velocity
       states are the accelerations (m/s^2).
-    - ``u``: ``(R, N, n)`` measured inputs, or None (output-only).
+    - ``u``: ``(R, N, n)`` measured inputs.
     - ``lib``: the library whose selected terms form ``h``.
-    - ``select``: ``select(x (R, N, m), rates (R, N, m)) -> (q, K)``, the coefficients of the
-      terms a short sampler run selects from these states, zero elsewhere
-      (:func:`sampler_selection`); called once per fixed-point step, so that a term the first,
-      biased states call for can drop out as they improve.
-    - ``crossover``, ``force_variance``: as :func:`anchored_smoother`.
-    - ``max_iterations``: most fixed-point steps after the first pass.
+    - ``select``: ``select(x (R, N, m)) -> (q, K)`` coefficients of the perturbation at these
+      states (:func:`sampler_selection`).
+    - ``crossover``: of the first phase (:func:`anchored_smoother`).
+    - ``max_iterations``: most Gauss-Newton steps.
+    - ``interpolation``: the inputs' (``"held"`` or ``"bandlimited"``).
+    - ``error_draws``: draws of the final states' estimation error, for the errors in
+      variables of the regression; ``seed`` draws them.
 
     **Returns:**
 
     ``(x (R, N, m), rates (R, N, m), info)``: estimated states; rates whose velocity rows are
     the measured accelerations and whose displacement rows are the estimated velocities (or
-    the measured ones); and a dict saying how (method, crossover, iterations, the terms in
-    the anchor, noise levels)."""
-    d, m = nominal.d, nominal.m
+    the measured ones); and a dict saying how (method, iterations, the terms in the anchor,
+    noise levels; ``info["error_draws"] (S, R, N, m)`` and ``info["coefficients"] (q, K)``
+    for :func:`~dtwin_jax.weak_form_accelerometers.accelerometer_weak_stats`)."""
+    from dtwin_jax.weak_form_accelerometers import equivalent_linear
+
+    d = nominal.d
     xdot = np.asarray(xdot, dtype=np.float64)
     xdot_index = tuple(xdot_index)
     vel = list(nominal.velocity_index)
     a = xdot[..., [xdot_index.index(i) for i in vel]]
-    uu = None if u is None else np.asarray(u, dtype=np.float64)
-    R, N, _ = a.shape
-    u_lib = np.zeros((R, N, nominal.n)) if uu is None else uu
-    reg = list(nominal.regressed_index)
-    Minv_rows = [reg.index(i) for i in vel]
+    uu = np.asarray(u, dtype=np.float64)
 
     def rates_of(x):
         rates = np.concatenate([x[..., d:2 * d], a], axis=-1)
@@ -262,72 +314,69 @@ def accelerometer_states(nominal: LinearSecondOrder, dt: float, xdot, xdot_index
                 rates[..., i] = xdot[..., col]
         return rates
 
-    def perturbation(x, coef):
-        """``M h`` along the trajectory ``x (R, N, m)`` under coefficients ``coef (q, K)``."""
-        L = np.asarray(lib(jnp.asarray(x.reshape(-1, m)), jnp.asarray(u_lib.reshape(-1, nominal.n))))
-        h = L @ np.asarray(coef)[Minv_rows].T
-        return (h @ np.asarray(nominal.M).T).reshape(R, N, d)
-
-    x, info = anchored_smoother(nominal, dt, a, uu, crossover=crossover, force_variance=force_variance)
-    rates = rates_of(x)
-    anchor = np.zeros((R, N, d))
-    steps, coef = 0, None
+    M = np.asarray(nominal.M)
+    delta = equivalent_linear(nominal, dt, a, uu, interpolation)
+    K_eq = np.asarray(nominal.K) - M @ delta[:, :d]
+    stable = bool(np.min(np.real(np.linalg.eigvals(np.linalg.solve(M, K_eq)))) > 0)
+    start = (LinearSecondOrder.create(M, np.asarray(nominal.C) - M @ delta[:, d:], K_eq, nominal.B, F0=nominal.F0)
+             if stable else nominal)
+    x, info = anchored_smoother(start, dt, a, uu, crossover=crossover)
+    phase, steps, coef, diverged = crossover, 0, None, False
     for steps in range(1, max_iterations + 1):
-        coef = np.asarray(select(x, rates))
-        anchor = anchor + RELAXATION * (perturbation(x, coef) - anchor)
-        new, info = anchored_smoother(nominal, dt, a, uu, anchor, crossover=crossover, force_variance=force_variance)
-        change = np.max(np.std(new - x, axis=(0, 1)) / np.maximum(np.std(new, axis=(0, 1)), 1e-300))
-        x, rates = new, rates_of(new)
-        if change < TOLERANCE:
+        coef = np.asarray(select(x))
+        force, jac = _linearized(nominal, lib, coef, x, uu)
+        anchor = force - np.einsum("rnij,rnj->rni", jac, x)
+        new, new_info = anchored_smoother(nominal, dt, a, uu, anchor, jac, crossover=phase)
+        if not np.all(np.isfinite(new)) or np.any(np.std(new, axis=(0, 1)) > 3 * np.std(x, axis=(0, 1))):
+            diverged = True  # a wild selection's linearization: keep the last states
             break
+        change = np.max(np.std(new - x, axis=(0, 1)) / np.maximum(np.std(new, axis=(0, 1)), 1e-300))
+        x, info = new, new_info
+        if change < TOLERANCE:
+            if phase is None:
+                break
+            phase = None
+    if coef is not None and error_draws:
+        force, jac = _linearized(nominal, lib, coef, x, uu)
+        x, info = anchored_smoother(nominal, dt, a, uu, force - np.einsum("rnij,rnj->rni", jac, x), jac,
+                                    crossover=phase, error_draws=error_draws, seed=seed)
+    reg = list(nominal.regressed_index)
     selected = np.zeros((len(reg), lib.K), bool) if coef is None else coef != 0
     names = list(lib.names)
     info = {
-        "method": "anchored kinematic RTS (integrated accelerations above the crossover, "
-                  "equation of motion with the selected perturbation below)",
+        "method": "anchored kinematic RTS (integrated accelerations, and the equation of motion with "
+                  "the discovered perturbation linearized at the states)",
+        "start": "equivalent linear model" if stable else "nominal model",
         "crossover_ratio": crossover,
+        "crossover_released": phase is None,
+        "stopped_diverging": diverged,
         "anchor_iterations": int(steps),
         "anchor_terms": {nominal.state_names[i]: [names[k] for k in np.flatnonzero(selected[j])]
                          for j, i in enumerate(reg)},
+        "coefficients": None if coef is None else coef,
         **info,
     }
-    return x, rates, info
+    return x, rates_of(x), info
 
 
-def sampler_selection(nominal: LinearSecondOrder, dt: float, lib, u, settings, seed: int):
-    """The ``select`` of :func:`accelerometer_states`: the terms with inclusion probability
-    above 1/2 in a short sampler run (:func:`~dtwin_jax.update.output_only_stats.first_pass_settings`)
-    on the statistics of states ``x (R, N, m)`` and rates ``(R, N, m)``; ``u (R, N, n)`` or None."""
-    from dtwin_jax.targets import equation_stats, input_output_targets
+def sampler_selection(nominal: LinearSecondOrder, dt: float, a, lib, u, settings, seed: int,
+                      interpolation: str = "held"):
+    """The ``select`` of :func:`accelerometer_states`: the coefficients of the terms with
+    inclusion probability above 1/2 (the posterior mean with zeros counted spreads weight over
+    a large library's look-alikes, ``x1**6`` and the like, whose linearization threw the
+    loop off) in a short sampler run
+    (:func:`~dtwin_jax.update.output_only_stats.first_pass_settings`) on the weak-form
+    statistics of accelerations ``a (R, N, d)`` and inputs ``u (R, N, n)`` at states
+    ``x (R, N, m)``."""
     from dtwin_jax.update.output_only_stats import first_pass_settings
     from dtwin_jax.update.sampling import _sample_equations, posteriors
+    from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats
 
-    def select(x, rates):
-        R, N, m = x.shape
-        uf = jnp.zeros((R * N, nominal.n)) if u is None else jnp.asarray(u).reshape(R * N, -1)
-        xf = jnp.asarray(x).reshape(R * N, m)
-        Y = np.asarray(input_output_targets(nominal, xf, uf, jnp.asarray(rates).reshape(R * N, m))).reshape(R, N, -1)
-        L = np.asarray(lib(xf, uf)).reshape(R, N, -1)
-        Lf, Yf = (high_pass(nominal, dt, v).reshape(R * N, -1) for v in (L, Y))
-        # A constant force only shifts the static displacement, which accelerometers do not
-        # see: the constant term (nothing left of it once high-passed) is left out.
-        keep = np.flatnonzero(np.std(Lf, axis=0) > 1e-3 * np.std(L.reshape(R * N, -1), axis=0))
-        trace = _sample_equations(equation_stats(Lf[:, keep], Yf), first_pass_settings(settings), seed, False)
-        names = [nominal.state_names[i] for i in nominal.regressed_index]
-        coef = np.zeros((len(names), lib.K))
-        coef[:, keep] = np.stack([e.coefficients for e in posteriors(trace, names, "drift", [lib.names[k] for k in keep], 0.5)])
-        return coef
+    names = [nominal.state_names[i] for i in nominal.regressed_index]
+
+    def select(x):
+        stats, _ = accelerometer_weak_stats(nominal, lib, dt, a, u, x, interpolation=interpolation)
+        trace = _sample_equations(stats, first_pass_settings(settings), seed, False)
+        return np.stack([e.coefficients for e in posteriors(trace, names, "drift", lib.names, 0.5)])
 
     return select
-
-
-def high_pass(nominal: LinearSecondOrder, dt: float, y, crossover: float = CROSSOVER) -> np.ndarray:
-    """``y (R, N, c)`` without what lies below the crossover (the band where the anchored states
-    err): a zero-phase 4th-order Butterworth high-pass at the lowest natural frequency over
-    ``crossover``, applied to targets and library alike (the regression is unchanged)."""
-    from scipy.signal import butter, sosfiltfilt
-
-    M, K = np.asarray(nominal.M), np.asarray(nominal.K)
-    f_min = float(np.sqrt(np.min(np.real(np.linalg.eigvals(np.linalg.solve(M, K)))))) / (2 * np.pi)
-    sos = butter(4, f_min / crossover, "highpass", fs=1.0 / dt, output="sos")
-    return sosfiltfilt(sos, np.asarray(y), axis=1)

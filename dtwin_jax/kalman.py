@@ -54,7 +54,7 @@ def _update(m, P, z, H, r):
 def kalman_filter(F, c, Q, H, e, r, z, m0, P0, *, update_first: bool = True) -> Filtered:
     """Filter `z (N, p)`: `F (S, S)` or `(N-1, S, S)`, `c (S,)` or `(N-1, S)`, `Q` like `F`
     or a pair `(w (d,), Q_unit (d, S, S) or (N-1, d, S, S))` for `Q_k = sum_v w_v Q_unit[k, v]`,
-    `H (p, S)` (None: `p = S` states measured directly), `e (N, p)` known measurement
+    `H (p, S)` or `(N, p, S)` per sample (None: `p = S` states measured directly), `e (N, p)` known measurement
     offsets (None: zero), `r (p,)` noise variances, prior `m0 (S,)`, `P0 (S, S)` of `s_0`.
     `update_first=False`: `m0, P0` already condition on `z_0` (a filter started at the
     first measurement), which then enters neither the update nor the likelihood.
@@ -65,7 +65,9 @@ def kalman_filter(F, c, Q, H, e, r, z, m0, P0, *, update_first: bool = True) -> 
     H = None if H is None else jnp.asarray(H)
     y = z if e is None else z - jnp.asarray(e)
     m0, P0 = jnp.asarray(m0), jnp.asarray(P0)
-    mf0, Pf0, ll0 = _update(m0, P0, y[0], H, r) if update_first else (m0, P0, 0.0)
+    varying = H is not None and H.ndim == 3
+    H0, Hs = (H[0], H[1:]) if varying else (H, None)
+    mf0, Pf0, ll0 = _update(m0, P0, y[0], H0, r) if update_first else (m0, P0, 0.0)
 
     # Q as weights of unit covariances is summed inside the loop: a per-step Q array built
     # outside would be materialized with its tangents when differentiated in the weights
@@ -74,13 +76,13 @@ def kalman_filter(F, c, Q, H, e, r, z, m0, P0, *, update_first: bool = True) -> 
 
     def step(carry, inputs):
         m, P = carry
-        Fk, ck, Qk, yk = inputs
+        Fk, ck, Qk, yk, Hk = inputs
         Qk = Qk if w is None else jnp.einsum("v,vij->ij", w, Qk)
         mp, Pp = Fk @ m + ck, Fk @ P @ Fk.T + Qk
-        mn, Pn, ll = _update(mp, Pp, yk, H, r)
+        mn, Pn, ll = _update(mp, Pp, yk, Hk if varying else H, r)
         return (mn, Pn), (mn, Pn, mp, Pp, ll)
 
-    inputs = (_steps(F, N, 2), _steps(c, N, 1), Q, y[1:])
+    inputs = (_steps(F, N, 2), _steps(c, N, 1), Q, y[1:], Hs)
     _, (mf, Pf, mp, Pp, ll) = jax.lax.scan(step, (mf0, Pf0), inputs)
     return Filtered(
         jnp.concatenate([mf0[None], mf]), jnp.concatenate([Pf0[None], Pf]), mp, Pp, ll0 + jnp.sum(ll)

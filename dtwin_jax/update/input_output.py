@@ -57,6 +57,7 @@ from dtwin_jax.weak_form import (
     weak_layout_supported,
     weak_window_fits,
 )
+from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats, constant_columns
 
 __all__ = ["update_input_output", "denoise_states"]
 
@@ -153,8 +154,16 @@ def update_input_output(
     stages = Stages(progress, 4 + refine, "input-output update")
     with stages("states and rates"):
         if accelerometers:
+            lib, dropped = _without_constant_columns(lib, nominal, rec.u)
+            if dropped:
+                warnings.append("accelerometers do not see a constant force (a static displacement): "
+                                + ", ".join(dropped) + " left out of the library")
+            a = rec.xdot[..., [xdot_index.index(i) for i in nominal.velocity_index]]
             xs, rates, smoothing_info = accelerometer_states(
-                nominal, rec.dt, rec.xdot, xdot_index, rec.u, lib, sampler_selection(nominal, rec.dt, lib, rec.u, settings, seed))
+                nominal, rec.dt, rec.xdot, xdot_index, rec.u, lib,
+                sampler_selection(nominal, rec.dt, a, lib, rec.u, settings, seed, interpolation),
+                interpolation=interpolation, seed=seed)
+            loop_names = list(lib.names)
             rate_source, correct, smoothing = "measured", True, "accelerometers"
         else:
             xs, rates, smoothing_info, rate_source, correct = _states_and_rates(
@@ -182,7 +191,14 @@ def update_input_output(
             stats, weak_info = weak_input_output_stats(nominal, lib, rec.t, rec.x, rec.u, x_index=x_index,
                                                        interpolation=interpolation)
             smoothing_info = {"states": smoothing_info, "regression": weak_info}
-        if rate_source == "state-space smoother" or accelerometers:  # smoothed states: correlated rows
+        if accelerometers:  # the weak form: the nominal part exact, whatever the states
+            draws, coef = smoothing_info.pop("error_draws", None), smoothing_info.pop("coefficients")
+            if coef is not None:  # the loop's coefficients on the library as reduced since
+                coef = coef[:, [loop_names.index(name) for name in lib.names]]
+            stats, weak_info = accelerometer_weak_stats(nominal, lib, rec.dt, a, rec.u, xs,
+                                                        interpolation=interpolation, state_draws=draws, coef=coef)
+            smoothing_info = {"states": smoothing_info, "regression": weak_info}
+        elif rate_source == "state-space smoother":  # smoothed states: correlated rows
             stats, n_eff = _autocorrelation_corrected(stats, nominal, lib, xs, rec.u, rates)
         stats = jax.block_until_ready(with_previous(stats, "drift", previous, forget))
     with stages("sampling"):
@@ -268,6 +284,22 @@ def _clear_of_jumps(lib, nominal, xs, x, x_index):
         sigma = float(np.std(raw - xs[..., v]))
         keep &= np.abs(xs[..., v]) > _JUMP_SIGMAS * sigma
     return keep if keep.mean() > 0.5 else None
+
+
+def _without_constant_columns(lib, nominal, u) -> tuple:
+    """``lib`` without its columns constant whatever the states (``1``), and their names:
+    the test functions of the accelerometers' weak form annihilate them."""
+    from dtwin_jax.library import parse_library
+
+    R, N, _ = u.shape
+    x = np.random.default_rng(0).standard_normal((1, min(N, 256), nominal.m))
+    drop = constant_columns(lib, x, np.asarray(u)[:1, :x.shape[1]])
+    if not drop:
+        return lib, []
+    kept = [name for k, name in enumerate(lib.names) if k not in drop]
+    if not kept:
+        raise DataError("accelerometers alone see no constant force, and the library has nothing else")
+    return parse_library("terms:" + ";".join(kept), lib.num_states, lib.num_inputs), [lib.names[k] for k in drop]
 
 
 def _layout_name(nominal, x_index, xdot_index) -> str:
