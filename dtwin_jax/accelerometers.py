@@ -35,14 +35,16 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.linalg import sqrtm
 
 from dtwin_jax.denoise import auto_half_width, noise_std
 from dtwin_jax.errors import DataError
 from dtwin_jax.kalman import kalman_filter, rts_smoother
 from dtwin_jax.systems import LinearSecondOrder
 
-__all__ = ["CROSSOVER", "ERROR_DRAWS", "accelerometer_layout", "check_accelerometer_layout", "sampler_selection",
-           "output_only_refusal", "anchored_smoother", "accelerometer_states"]
+__all__ = ["CROSSOVER", "ERROR_DRAWS", "MAX_FEEDBACK", "accelerometer_layout", "check_accelerometer_layout",
+           "sampler_selection", "output_only_refusal", "anchored_smoother", "accelerometer_states", "state_feedback",
+           "widened_draws"]
 
 # The anchor and the integrated accelerations cross over at the lowest natural frequency over
 # this factor. Example 1 (2 s, 3% noise), cubic coefficient with the true perturbation in the
@@ -55,6 +57,9 @@ TOLERANCE = 1e-4
 # Draws of the final states' estimation error: their effect on the selected terms enters the
 # regression's row covariance (errors in variables).
 ERROR_DRAWS = 16
+# The loop's feedback (:func:`state_feedback`): T' is scaled to this spectral radius at most,
+# so that a direction the data cannot fix widens its terms 10 times, not without bound.
+MAX_FEEDBACK = 0.99
 
 
 def check_accelerometer_layout(nominal: LinearSecondOrder, xdot_index) -> None:
@@ -380,3 +385,106 @@ def sampler_selection(nominal: LinearSecondOrder, dt: float, a, lib, u, settings
         return np.stack([e.coefficients for e in posteriors(trace, names, "drift", lib.names, 0.5)])
 
     return select
+
+
+def _selected_fit(nominal, lib, dt, a, u, x, index, interpolation) -> np.ndarray:
+    """Generalized least squares of the selected terms ``index [(equation, column)]`` on the
+    weak rows at states ``x``, stacked in ``index`` order."""
+    from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats
+
+    stats, _ = accelerometer_weak_stats(nominal, lib, dt, a, u, x, interpolation=interpolation, equation_error=False)
+    gram, xty = np.asarray(stats.gram), np.asarray(stats.xty)
+    out = np.zeros(len(index))
+    for e in sorted({e for e, _ in index}):
+        rows = [j for j, (ee, _) in enumerate(index) if ee == e]
+        ks = [index[j][1] for j in rows]
+        out[rows] = np.linalg.lstsq(gram[e][np.ix_(ks, ks)], xty[e][ks], rcond=None)[0]
+    return out
+
+
+def state_feedback(nominal: LinearSecondOrder, lib, dt: float, a, u, x, coef, error_draws, *,
+                   interpolation: str = "held", steps: int = 3, max_gain: float = MAX_FEEDBACK) -> dict:
+    """How much the anchor's loop feeds the coefficients back into themselves, and the states'
+    own uncertainty: the widening of the selected terms' posterior.
+
+    The loop's estimate is a fixed point ``theta = T(theta)``: the regression on the states
+    that the anchor with ``theta`` gives. Where the states follow the anchor, a change of
+    ``theta`` comes back nearly unchanged (``T'`` has an eigenvalue near 1: a two-storey
+    shear frame's cubic coupling, whose common-mode drift accelerometers do not fix, measured
+    0.93), and the data cannot tell those coefficients apart although each regression on
+    fixed states is sharp (zoo-0018: 11% off, posterior std 0.5%). By the delta method, the
+    fixed point's error is ``(I - T')^-1`` times the regression's own, which is the sampler's
+    spread plus that of the fit over draws of the states' estimation error.
+
+    **Arguments:**
+
+    - ``nominal``, ``lib``, ``dt``, ``interpolation``: as :func:`accelerometer_states`.
+    - ``a``: ``(R, N, d)`` accelerations; ``u``: ``(R, N, n)`` inputs.
+    - ``x``: ``(R, N, m)`` the loop's final states; ``coef``: ``(q, K)`` its coefficients.
+    - ``error_draws``: ``(S, R, N, m)`` draws of the states' estimation error.
+    - ``steps``: Gauss-Newton steps of the anchor per evaluation of ``T``.
+    - ``max_gain``: ``T'`` is scaled to at most this spectral radius (a neutral direction then
+      widens ``(1 - max_gain)^-1/2`` times); beyond 1 it is not used.
+
+    **Returns:** ``{"index": [(equation, column)], "gain": (P, P) (I - T')^-1/2, "extra": (P, P)
+    covariance of the fit over the error draws, "eigenvalues": of T'}``; an empty index when
+    nothing is selected."""
+    coef = np.asarray(coef)
+    index = [(e, int(k)) for e in range(coef.shape[0]) for k in np.flatnonzero(coef[e])]
+    if not index:
+        return {"index": [], "gain": np.zeros((0, 0)), "extra": np.zeros((0, 0)), "eigenvalues": []}
+    theta0 = np.array([coef[e, k] for e, k in index])
+
+    def T(theta):
+        cf = np.zeros_like(coef)
+        for (e, k), v in zip(index, theta):
+            cf[e, k] = v
+        xs = x
+        for _ in range(steps):
+            force, jac = _linearized(nominal, lib, cf, xs, u)
+            xs, _ = anchored_smoother(nominal, dt, a, u, force - np.einsum("rnij,rnj->rni", jac, xs), jac, crossover=None)
+        return _selected_fit(nominal, lib, dt, a, u, xs, index, interpolation)
+
+    base = T(theta0)
+    P = len(index)
+    Tp = np.zeros((P, P))
+    for j in range(P):
+        step = 1e-3 * abs(theta0[j])
+        moved = theta0.copy()
+        moved[j] += step
+        Tp[:, j] = (T(moved) - base) / step
+    lam = np.linalg.eigvals(Tp)
+    radius = float(np.max(np.abs(lam)))
+    # Beyond 1 the loop cannot have settled there: the linearization does not hold (a sign()
+    # term's regression jumps with each velocity reversal; zoo-0024 measured 1.79 with the
+    # coefficient 0.4% off), and nothing is widened. Below, T' is scaled to at most max_gain.
+    inverse = np.eye(P) if radius > 1.0 else np.linalg.inv(np.eye(P) - Tp * min(1.0, max_gain / max(radius, 1e-300)))
+    # The fixed point's covariance is the regression's times (I - T')^-1 (Meng and Rubin's
+    # SEM for a self-consistent estimate): draws are moved by its square root.
+    gain = np.real(sqrtm(inverse))
+    fits = np.array([_selected_fit(nominal, lib, dt, a, u, x + draw, index, interpolation) for draw in error_draws])
+    extra = np.atleast_2d(np.cov(fits.T)) if len(fits) > 1 else np.zeros((P, P))
+    return {"index": index, "gain": gain, "extra": extra, "eigenvalues": sorted(np.abs(lam).tolist(), reverse=True)}
+
+
+def widened_draws(theta, gamma, feedback: dict, seed: int = 0) -> np.ndarray:
+    """The selected terms' draws widened by :func:`state_feedback`: ``mean + G (theta - mean + e)``
+    with ``G = (I - T')^-1/2`` and ``e`` Gaussian with the error draws' covariance.
+
+    ``theta``, ``gamma``: ``(q, chains, draws, K)``; each term's mean is over the draws that
+    include it, and a draw that excludes a term keeps it at zero. Returns the new ``theta``."""
+    index = feedback["index"]
+    theta = np.array(theta, dtype=np.float64, copy=True)
+    if not index:
+        return theta
+    gamma = np.asarray(gamma).astype(bool)
+    cols = np.stack([theta[e, ..., k] for e, k in index], axis=-1)  # (chains, draws, P)
+    inc = np.stack([gamma[e, ..., k] for e, k in index], axis=-1)
+    mean = np.array([cols[..., j][inc[..., j]].mean() if inc[..., j].any() else 0.0 for j in range(len(index))])
+    extra = feedback["extra"]
+    chol = np.linalg.cholesky(extra + 1e-12 * np.max(np.abs(np.diag(extra)), initial=1e-300) * np.eye(len(index)))
+    noise = np.random.default_rng(seed).standard_normal(cols.shape) @ chol.T
+    new = mean + (np.where(inc, cols - mean, 0.0) + noise) @ feedback["gain"].T
+    for j, (e, k) in enumerate(index):
+        theta[e, ..., k] = np.where(inc[..., j], new[..., j], 0.0)
+    return theta

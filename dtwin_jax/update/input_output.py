@@ -15,7 +15,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import sampler
-from dtwin_jax.accelerometers import accelerometer_layout, accelerometer_states, sampler_selection
+from dtwin_jax.accelerometers import (
+    accelerometer_layout,
+    accelerometer_states,
+    sampler_selection,
+    state_feedback,
+    widened_draws,
+)
 from dtwin_jax.checks import residual_checks
 from dtwin_jax.collinearity import collinearity_checks, twin_coefficients
 from dtwin_jax.data import Records, check_records, state_range
@@ -186,7 +192,7 @@ def update_input_output(
                                                        keep=keep)
         if keep is not None:
             smoothing_info = {**(smoothing_info or {}), "rows_near_velocity_reversals_left_out": int((~keep).sum())}
-        n_eff = None
+        n_eff, feedback = None, None
         if smoothing == "weak":  # the Savitzky-Golay rates above serve the residual checks only
             stats, weak_info = weak_input_output_stats(nominal, lib, rec.t, rec.x, rec.u, x_index=x_index,
                                                        interpolation=interpolation)
@@ -197,12 +203,19 @@ def update_input_output(
                 coef = coef[:, [loop_names.index(name) for name in lib.names]]
             stats, weak_info = accelerometer_weak_stats(nominal, lib, rec.dt, a, rec.u, xs,
                                                         interpolation=interpolation, state_draws=draws, coef=coef)
+            if coef is not None and draws is not None:
+                feedback = state_feedback(nominal, lib, rec.dt, a, rec.u, xs, coef, draws, interpolation=interpolation)
+                weak_info["state_feedback"] = {
+                    "eigenvalues": [round(v, 4) for v in feedback["eigenvalues"][:4]],
+                    "largest_widening": float(np.max(np.linalg.svd(feedback["gain"], compute_uv=False), initial=1.0))}
             smoothing_info = {"states": smoothing_info, "regression": weak_info}
         elif rate_source == "state-space smoother":  # smoothed states: correlated rows
             stats, n_eff = _autocorrelation_corrected(stats, nominal, lib, xs, rec.u, rates)
         stats = jax.block_until_ready(with_previous(stats, "drift", previous, forget))
     with stages("sampling"):
         trace = jax.block_until_ready(_sample_equations(stats, settings, seed, progress))
+        if feedback is not None:  # what the anchor's loop and the states' error add
+            trace = trace._replace(theta=widened_draws(trace.theta, trace.gamma, feedback, seed))
     names = nominal.state_names
     with stages("posterior and residual checks"):
         equations = posteriors(trace, [names[i] for i in nominal.regressed_index], "drift", lib.names, pip_threshold)
