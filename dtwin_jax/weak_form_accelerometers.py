@@ -194,6 +194,7 @@ def accelerometer_weak_stats(nominal: LinearSecondOrder, lib: Library, dt: float
         "effective_share": scale.tolist(),
         "equation_error_share": [float(w * np.trace(S_w) / (w * np.trace(S_w) + np.trace(base[i])))
                                  for i, w in enumerate(weights)],
+        "equation_error_weight": weights.tolist(),
         "state_error_share": [float(np.trace(S_e[i]) / max(np.trace(cov[i]), 1e-300)) for i in range(d)],
     }
     return stats, info
