@@ -289,7 +289,8 @@ def accelerometer_states(nominal: LinearSecondOrder, dt: float, xdot, xdot_index
     would otherwise pull them 10% off. Then, in turn, a short sampler run on the weak-form
     statistics at the states selects terms (``select``), and the anchored smoother runs
     again with their force linearized at the states (Gauss-Newton: a cubic stiffer than the
-    nominal made the plain fixed point diverge). Once this settles with the crossover, it
+    nominal made the plain fixed point diverge). Once two selections in a row agree, the
+    support stays and its coefficients come from least squares on the weak rows. Once this settles with the crossover, it
     goes on with the anchor at the accelerometers' own noise.
 
     **Arguments:**
@@ -341,8 +342,17 @@ def accelerometer_states(nominal: LinearSecondOrder, dt: float, xdot, xdot_index
              if stable else nominal)
     x, info = anchored_smoother(start, dt, a, uu, crossover=crossover, force_variance=force_variance, acceleration_noise_std=acceleration_noise_std)
     phase, steps, coef, diverged = crossover, 0, None, False
+    settled = 0  # selections in a row with the same support
     for steps in range(1, max_iterations + 1):
-        coef = np.asarray(select(x))
+        if settled < 2:
+            new_coef = np.asarray(select(x))
+            settled = settled + 1 if coef is not None and np.array_equal(new_coef != 0, coef != 0) else 1
+            coef = new_coef
+        else:  # the support has settled: its coefficients by least squares, no sampler run
+            index = [(e, int(k)) for e in range(coef.shape[0]) for k in np.flatnonzero(coef[e])]
+            coef = np.zeros_like(coef)
+            for (e, k), v in zip(index, _selected_fit(nominal, lib, dt, a, uu, x, index, interpolation)):
+                coef[e, k] = v
         force, jac = _linearized(nominal, lib, coef, x, uu)
         anchor = force - np.einsum("rnij,rnj->rni", jac, x)
         new, new_info = anchored_smoother(nominal, dt, a, uu, anchor, jac, crossover=phase,
