@@ -67,6 +67,15 @@ from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats, constan
 
 __all__ = ["update_input_output", "denoise_states"]
 
+# Accelerometers alone: a widening of the selected terms' intervals above this (the anchor's
+# loop feeding coefficients back, dtwin_jax.accelerometers.state_feedback) is named in a warning.
+WIDENING_WARNING = 3.0
+
+
+def _regressed_names(nominal) -> list[str]:
+    """The regressed equations' state names, in order."""
+    return [nominal.state_names[i] for i in nominal.regressed_index]
+
 
 def update_input_output(
     nominal: LinearSecondOrder,
@@ -205,9 +214,16 @@ def update_input_output(
                                                         interpolation=interpolation, state_draws=draws, coef=coef)
             if coef is not None and draws is not None:
                 feedback = state_feedback(nominal, lib, rec.dt, a, rec.u, xs, coef, draws, interpolation=interpolation)
-                weak_info["state_feedback"] = {
-                    "eigenvalues": [round(v, 4) for v in feedback["eigenvalues"][:4]],
-                    "largest_widening": float(np.max(np.linalg.svd(feedback["gain"], compute_uv=False), initial=1.0))}
+                widening = float(np.max(np.linalg.svd(feedback["gain"], compute_uv=False), initial=1.0))
+                weak_info["state_feedback"] = {"eigenvalues": [round(v, 4) for v in feedback["eigenvalues"][:4]],
+                                               "largest_widening": widening}
+                if widening > WIDENING_WARNING:
+                    rows = np.linalg.norm(feedback["gain"], axis=1)  # each term's widening (isotropic spread)
+                    loose = [f"{lib.names[k]} ({_regressed_names(nominal)[e]})"
+                             for (e, k), g in zip(feedback["index"], rows) if g >= rows.max() / 2]
+                    warnings.append(f"accelerometers alone leave {', '.join(loose)} poorly fixed (the states follow "
+                                    f"the coefficients the twin holds): intervals widened up to {widening:.1f}x; "
+                                    "a displacement sensor would pin them down")
             smoothing_info = {"states": smoothing_info, "regression": weak_info}
         elif rate_source == "state-space smoother":  # smoothed states: correlated rows
             stats, n_eff = _autocorrelation_corrected(stats, nominal, lib, xs, rec.u, rates)
