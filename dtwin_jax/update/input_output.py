@@ -196,11 +196,15 @@ def update_input_output(
         del L
         # The same jitted chain as the batched studies (dtwin_jax.studies).
         # Rows where a sign(v) column may be wrong are left out (measured rates).
-        keep = _clear_of_jumps(lib, nominal, xs, rec.x, x_index) if rate_source == "measured" else None
-        stats, noise_var = smoothed_input_output_stats(nominal, lib, xs, rec.u, rates, hw, correct_inputs=correct,
-                                                       keep=keep)
-        if keep is not None:
-            smoothing_info = {**(smoothing_info or {}), "rows_near_velocity_reversals_left_out": int((~keep).sum())}
+        if accelerometers:  # the weak rows below are the statistics
+            noise_var = None
+        else:
+            keep = _clear_of_jumps(lib, nominal, xs, rec.x, x_index) if rate_source == "measured" else None
+            stats, noise_var = smoothed_input_output_stats(nominal, lib, xs, rec.u, rates, hw, correct_inputs=correct,
+                                                           keep=keep)
+            if keep is not None:
+                smoothing_info = {**(smoothing_info or {}),
+                                  "rows_near_velocity_reversals_left_out": int((~keep).sum())}
         n_eff, feedback = None, None
         if smoothing == "weak":  # the Savitzky-Golay rates above serve the residual checks only
             stats, weak_info = weak_input_output_stats(nominal, lib, rec.t, rec.x, rec.u, x_index=x_index,
