@@ -174,11 +174,15 @@ def _error_draws(F, Q, H, r, P0, num: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     lam, V = np.linalg.eigh(Q)
     Q_half = V * np.sqrt(np.maximum(lam, 0.0))
-    x = np.empty((num * R, N, S))
-    x[:, 0] = rng.standard_normal((num * R, S)) @ np.linalg.cholesky(P0).T
+    x0 = rng.standard_normal((num * R, S)) @ np.linalg.cholesky(P0).T
     w = rng.standard_normal((num * R, N - 1, S)) @ Q_half.T
-    for k in range(N - 1):  # a short loop of small products (N steps)
-        x[:, k + 1] = x[:, k] @ F.T + w[:, k]
+    # The kinematic chain F = [[I, dt I], [0, I]] in closed form: v_k = v_0 + sum of the
+    # velocity noise before k, q_k = q_0 + sum of dt v_j + the displacement noise before k.
+    d, dt = S // 2, F[0, S // 2]
+    zero = np.zeros((num * R, 1, d))
+    v = x0[:, None, d:] + np.concatenate([zero, np.cumsum(w[..., d:], axis=1)], axis=1)
+    q = x0[:, None, :d] + np.concatenate([zero, np.cumsum(dt * v[:, :-1] + w[..., :d], axis=1)], axis=1)
+    x = np.concatenate([q, v], axis=-1)
     Hs = np.tile(H, (num, 1, 1, 1))
     z = np.einsum("bnps,bns->bnp", Hs, x) + rng.standard_normal((num * R, N, p)) * np.sqrt(r)
     est = _smooth(*(jnp.asarray(v) for v in (F, np.zeros((num * R, N - 1, S)), Q, Hs, z, r, np.zeros((num * R, S)), P0)))
