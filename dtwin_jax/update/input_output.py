@@ -19,7 +19,6 @@ from dtwin_jax.accelerometers import (
     accelerometer_layout,
     accelerometer_states,
     sampler_selection,
-    state_feedback,
     widened_draws,
 )
 from dtwin_jax.checks import residual_checks
@@ -44,6 +43,7 @@ from dtwin_jax.systems import (
     resolve_interpolation,
 )
 from dtwin_jax.targets import input_output_targets, smoothed_input_output_stats
+from dtwin_jax.update.accelerometer_regression import accelerometer_regression, without_constant_columns
 from dtwin_jax.update.lifecycle import (
     check_previous,
     check_repeat,
@@ -63,19 +63,8 @@ from dtwin_jax.weak_form import (
     weak_layout_supported,
     weak_window_fits,
 )
-from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats, constant_columns
 
 __all__ = ["update_input_output", "denoise_states"]
-
-# Accelerometers alone: a widening of the selected terms' intervals above this (the anchor's
-# loop feeding coefficients back, dtwin_jax.accelerometers.state_feedback) is named in a warning.
-WIDENING_WARNING = 3.0
-
-
-def _regressed_names(nominal) -> list[str]:
-    """The regressed equations' state names, in order."""
-    return [nominal.state_names[i] for i in nominal.regressed_index]
-
 
 def update_input_output(
     nominal: LinearSecondOrder,
@@ -169,7 +158,7 @@ def update_input_output(
     stages = Stages(progress, 4 + refine, "input-output update")
     with stages("states and rates"):
         if accelerometers:
-            lib, dropped = _without_constant_columns(lib, nominal, rec.u)
+            lib, dropped = without_constant_columns(lib, nominal, rec.u)
             if dropped:
                 warnings.append("accelerometers do not see a constant force (a static displacement): "
                                 + ", ".join(dropped) + " left out of the library")
@@ -211,23 +200,9 @@ def update_input_output(
                                                        interpolation=interpolation)
             smoothing_info = {"states": smoothing_info, "regression": weak_info}
         if accelerometers:  # the weak form: the nominal part exact, whatever the states
-            draws, coef = smoothing_info.pop("error_draws", None), smoothing_info.pop("coefficients")
-            if coef is not None:  # the loop's coefficients on the library as reduced since
-                coef = coef[:, [loop_names.index(name) for name in lib.names]]
-            stats, weak_info = accelerometer_weak_stats(nominal, lib, rec.dt, a, rec.u, xs,
-                                                        interpolation=interpolation, state_draws=draws, coef=coef)
-            if coef is not None and draws is not None:
-                feedback = state_feedback(nominal, lib, rec.dt, a, rec.u, xs, coef, draws, interpolation=interpolation)
-                widening = float(np.max(np.linalg.svd(feedback["gain"], compute_uv=False), initial=1.0))
-                weak_info["state_feedback"] = {"eigenvalues": [round(v, 4) for v in feedback["eigenvalues"][:4]],
-                                               "largest_widening": widening}
-                if widening > WIDENING_WARNING:
-                    rows = np.linalg.norm(feedback["gain"], axis=1)  # each term's widening (isotropic spread)
-                    loose = [f"{lib.names[k]} ({_regressed_names(nominal)[e]})"
-                             for (e, k), g in zip(feedback["index"], rows) if g >= rows.max() / 2]
-                    warnings.append(f"accelerometers alone leave {', '.join(loose)} poorly fixed (the states follow "
-                                    f"the coefficients the twin holds): intervals widened up to {widening:.1f}x; "
-                                    "a displacement sensor would pin them down")
+            stats, weak_info, feedback, more = accelerometer_regression(nominal, lib, rec.dt, a, rec.u, xs, smoothing_info,
+                                                                        loop_names, interpolation)
+            warnings.extend(more)
             smoothing_info = {"states": smoothing_info, "regression": weak_info}
         elif rate_source == "state-space smoother":  # smoothed states: correlated rows
             stats, n_eff = _autocorrelation_corrected(stats, nominal, lib, xs, rec.u, rates)
@@ -317,22 +292,6 @@ def _clear_of_jumps(lib, nominal, xs, x, x_index):
         sigma = float(np.std(raw - xs[..., v]))
         keep &= np.abs(xs[..., v]) > _JUMP_SIGMAS * sigma
     return keep if keep.mean() > 0.5 else None
-
-
-def _without_constant_columns(lib, nominal, u) -> tuple:
-    """``lib`` without its columns constant whatever the states (``1``), and their names:
-    the test functions of the accelerometers' weak form annihilate them."""
-    from dtwin_jax.library import parse_library
-
-    R, N, _ = u.shape
-    x = np.random.default_rng(0).standard_normal((1, min(N, 256), nominal.m))
-    drop = constant_columns(lib, x, np.asarray(u)[:1, :x.shape[1]])
-    if not drop:
-        return lib, []
-    kept = [name for k, name in enumerate(lib.names) if k not in drop]
-    if not kept:
-        raise DataError("accelerometers alone see no constant force, and the library has nothing else")
-    return parse_library("terms:" + ";".join(kept), lib.num_states, lib.num_inputs), [lib.names[k] for k in drop]
 
 
 def _layout_name(nominal, x_index, xdot_index) -> str:

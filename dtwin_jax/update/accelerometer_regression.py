@@ -1,0 +1,71 @@
+"""The regression of both frameworks on accelerometers alone: the weak rows at the anchored
+states (:mod:`dtwin_jax.weak_form_accelerometers`) and the widening of what the anchor's
+loop feeds back into itself (:func:`dtwin_jax.accelerometers.state_feedback`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dtwin_jax.accelerometers import state_feedback
+from dtwin_jax.errors import DataError
+from dtwin_jax.library import Library, parse_library
+from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats, constant_columns
+
+__all__ = ["WIDENING_WARNING", "accelerometer_regression", "without_constant_columns"]
+
+# A term whose interval the feedback widens more than this (the states follow whatever
+# coefficients the anchor holds: zoo-0018's cubic coupling, 11% off) is named in a warning.
+WIDENING_WARNING = 3.0
+
+
+def without_constant_columns(lib: Library, nominal: LinearSecondOrder, u) -> tuple[Library, list[str]]:
+    """``lib`` without its columns constant whatever the states (``1``), and their names: the
+    test functions of the accelerometers' weak form annihilate them. ``u (R, N, n)``."""
+    R, N, _ = u.shape
+    x = np.random.default_rng(0).standard_normal((1, min(N, 256), nominal.m))
+    drop = constant_columns(lib, x, np.asarray(u)[:1, :x.shape[1]])
+    if not drop:
+        return lib, []
+    kept = [name for k, name in enumerate(lib.names) if k not in drop]
+    if not kept:
+        raise DataError("accelerometers alone see no constant force, and the library has nothing else")
+    return parse_library("terms:" + ";".join(kept), lib.num_states, lib.num_inputs), [lib.names[k] for k in drop]
+
+
+def accelerometer_regression(nominal: LinearSecondOrder, lib: Library, dt: float, a, u, x, states_info: dict,
+                             loop_names, interpolation: str) -> tuple:
+    """The weak-form statistics at the anchored states and the feedback's widening.
+
+    **Arguments:**
+
+    - ``nominal``, ``lib``: the nominal model and the (reduced) library.
+    - ``dt``: sample step, s.
+    - ``a``: ``(R, N, d)`` accelerations; ``u``: ``(R, N, n)`` inputs (zeros: output-only).
+    - ``x``: ``(R, N, m)`` the states of :func:`~dtwin_jax.accelerometers.accelerometer_states`,
+      ``states_info`` its info (``error_draws`` and ``coefficients`` are taken out of it).
+    - ``loop_names``: the term names of the library the loop ran with.
+    - ``interpolation``: the inputs' (``"held"`` or ``"bandlimited"``).
+    **Returns:** ``(stats, info, feedback or None, warnings)``: the
+    :class:`~dtwin_jax.sampler.SuffStats` of the velocity equations, the weak form's
+    description, :func:`~dtwin_jax.accelerometers.state_feedback`'s result, and warnings."""
+    draws, coef = states_info.pop("error_draws", None), states_info.pop("coefficients")
+    if coef is not None:  # the loop's coefficients on the library as reduced since
+        coef = coef[:, [list(loop_names).index(name) for name in lib.names]]
+    stats, info = accelerometer_weak_stats(nominal, lib, dt, a, u, x, interpolation=interpolation,
+                                           state_draws=draws, coef=coef)
+    feedback, warnings = None, []
+    if coef is not None and draws is not None:
+        feedback = state_feedback(nominal, lib, dt, a, u, x, coef, draws, interpolation=interpolation)
+        widening = float(np.max(np.linalg.svd(feedback["gain"], compute_uv=False), initial=1.0))
+        info["state_feedback"] = {"eigenvalues": [round(v, 4) for v in feedback["eigenvalues"][:4]],
+                                  "largest_widening": widening}
+        if widening > WIDENING_WARNING:
+            rows = np.linalg.norm(feedback["gain"], axis=1)  # each term's widening (isotropic spread)
+            regressed = [nominal.state_names[i] for i in nominal.regressed_index]
+            loose = [f"{lib.names[k]} ({regressed[e]})" for (e, k), g in zip(feedback["index"], rows)
+                     if g >= rows.max() / 2]
+            warnings.append(f"accelerometers alone leave {', '.join(loose)} poorly fixed (the states follow "
+                            f"the coefficients the twin holds): intervals widened up to {widening:.1f}x; "
+                            "a displacement sensor would pin them down")
+    return stats, info, feedback, warnings
