@@ -9,7 +9,9 @@ level (2-5% on every signal). Input-output: `simulate_example`, then `measure` o
 accelerations and inputs, then `update_input_output` with the measured accelerations.
 Output-only: `simulate_example_sde` with `--records` records, `add_noise` on the states
 (one sensor per state: the noise std is the level times the ensemble's std, the same in
-every record), then `update_output_only`. Scores: exact support (every regressed equation's selected terms
+every record), then `update_output_only`; with `--layout accelerometers`, the records'
+accelerations alone (an accelerometer's average over each sample's interval, the same
+noise), as ambient vibration is measured. Scores: exact support (every regressed equation's selected terms
 are exactly its true terms), 95% HDI coverage of every true coefficient, and its relative
 error `|mean / truth - 1|` (mean given inclusion; a never-included term counts 100%).
 Prints one progress line per member and a markdown table by family; `--json` writes every
@@ -62,8 +64,14 @@ def _update(member: zoo.Member, framework: str, records: int, settings: SamplerS
         x, x_names, xdot, xdot_names = _layout(nominal, layout, meas)
         result = update_input_output(nominal, meas.t, x, meas.u, xdot, x_names=x_names, xdot_names=xdot_names,
                                      library=ex.library, settings=settings, seed=member.seed)
+    elif layout == "accelerometers":  # ambient vibration: accelerometers alone, the force white and unknown
+        sim = systems.simulate_example_sde(ex, sim_key, num_records=records, duration=duration, accelerations=True)
+        xdot = add_noise(noise_key, sim["xdot"], level, per_record=False)
+        result = update_output_only(nominal, sim["t"], None, xdot=xdot,
+                                    xdot_names=[nominal.state_names[i] for i in nominal.velocity_index],
+                                    library=ex.library_output_only, settings=settings, seed=member.seed)
     else:
-        sim = systems.simulate_example_sde(ex, sim_key, num_records=records)
+        sim = systems.simulate_example_sde(ex, sim_key, num_records=records, duration=duration)
         x = add_noise(noise_key, sim["x"], level, per_record=False)  # one sensor per state
         result = update_output_only(nominal, sim["t"], x, library=ex.library_output_only,
                                     settings=settings, seed=member.seed)
@@ -148,7 +156,7 @@ def main():
     p.add_argument("--json", default=None)
     a = p.parse_args()
     settings = SamplerSettings(num_chains=a.chains, num_draws=a.draws, num_burnin=a.burn_in)
-    print(f"{a.framework}" + (f" ({a.layout})" if a.framework == "input-output" else "") + f", {a.members} members from seed {a.seed}; {a.chains} chains x "
+    print(f"{a.framework} ({a.layout})" + f", {a.members} members from seed {a.seed}; {a.chains} chains x "
           f"{a.draws} draws, {a.burn_in} burn-in" + (f"; {a.records} records" if a.framework == "output-only" else ""),
           flush=True)
     rows = []

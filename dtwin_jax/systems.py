@@ -843,11 +843,16 @@ def simulate_example_sde(
     duration: float | None = None,
     dt: float | None = None,
     substeps: int = 4,
+    accelerations: bool = False,
 ) -> dict[str, Array]:
     """Framework 2: an ensemble of `R = num_records` independent records of the example
     driven by Brownian forcing (`simulate_sde`), all from `example.x0`.
 
-    Returns `{"t": (N,), "x": (R, N, m)}`.
+    Returns `{"t": (N,), "x": (R, N, m)}`; with `accelerations`, also `"xdot": (R, N, d)`,
+    what an accelerometer averaging over each sample's interval measures (the change of each
+    velocity from half a step before the sample to half a step after it, over `dt`; the force
+    is white, so its acceleration has no value at an instant). The records then start half a
+    step after `example.x0`.
     """
     duration = example.duration if duration is None else duration
     dt = example.dt if dt is None else dt
@@ -856,5 +861,10 @@ def simulate_example_sde(
         raise DataError(f"simulation needs at least 3 samples, got duration/dt = {N - 1}")
     t = jnp.arange(N) * dt
     keys = jax.random.split(key, num_records)
-    x = jax.vmap(lambda k: simulate_sde(example.system, example.x0, t, k, substeps=substeps))(keys)
-    return {"t": t, "x": x}
+    if not accelerations:
+        x = jax.vmap(lambda k: simulate_sde(example.system, example.x0, t, k, substeps=substeps))(keys)
+        return {"t": t, "x": x}
+    half = jnp.arange(2 * N + 1) * (dt / 2)  # samples at the odd points, velocities at the even
+    xh = jax.vmap(lambda k: simulate_sde(example.system, example.x0, half, k, substeps=max(1, substeps // 2)))(keys)
+    vel = jnp.asarray(example.system.nominal.velocity_index)
+    return {"t": t, "x": xh[:, 1::2], "xdot": (xh[:, 2::2, vel] - xh[:, :-2:2, vel]) / dt}

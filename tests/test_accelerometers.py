@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dtwin_jax import SamplerSettings, systems, update_input_output, update_output_only
+from dtwin_jax import SamplerSettings, systems, update_input_output
 from dtwin_jax.accelerometers import anchored_smoother
 from dtwin_jax.cli import main
 from dtwin_jax.errors import DataError
@@ -63,7 +63,7 @@ CHAIN = systems.LinearSecondOrder.create(np.eye(2), [[8.0, -4.0], [-4.0, 4.0]], 
                                          np.eye(2))
 
 
-@pytest.mark.parametrize("case", ["one accelerometer of two", "nothing measured", "output-only"])
+@pytest.mark.parametrize("case", ["one accelerometer of two", "nothing measured"])
 def test_layouts_that_cannot_work_are_refused_in_one_line(case):
     t = np.arange(200) * 1e-3
     rng = np.random.default_rng(0)
@@ -71,25 +71,22 @@ def test_layouts_that_cannot_work_are_refused_in_one_line(case):
         call = lambda: update_input_output(CHAIN, t, None, rng.normal(size=(200, 2)), rng.normal(size=(200, 1)),
                                            xdot_names=["x3"])
         message = "missing 'xdot' of x4"
-    elif case == "nothing measured":
+    else:
         call = lambda: update_input_output(CHAIN, t, None, rng.normal(size=(200, 2)))
         message = r"give 'x' \(states\) or 'xdot'"
-    else:
-        call = lambda: update_output_only(CHAIN, t, None, xdot=rng.normal(size=(200, 2)), xdot_names=["x3", "x4"])
-        message = "the diffusion needs the states 'x'"
     with pytest.raises(DataError, match=message) as err:
         call()
     assert "\n" not in str(err.value)
 
 
-def test_cli_refuses_output_only_accelerometers_with_status_2(tmp_path, capsys):
+def test_cli_refuses_a_state_dependent_diffusion_from_accelerometers_with_status_2(tmp_path, capsys):
     t = np.arange(200) * 1e-3
     np.savez(tmp_path / "a.npz", t=t, xdot=np.random.default_rng(0).normal(size=(200, 1)), xdot_names=np.array(["x2"]))
     (tmp_path / "nominal.toml").write_text("M = [[1.0]]\nC = [[2.0]]\nK = [[1000.0]]\n")
     code = main(["discover", str(tmp_path / "a.npz"), "--nominal", str(tmp_path / "nominal.toml"), "--quiet",
-                 "--out", str(tmp_path / "r.json")])
+                 "--mode", "output-only", "--diffusion-library", "poly:2", "--out", str(tmp_path / "r.json")])
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and "output-only from accelerometers alone" in err[0], err
+    assert code == 2 and len(err) == 1 and "constant diffusion only" in err[0], err
     assert not (tmp_path / "r.json").exists()
 
 

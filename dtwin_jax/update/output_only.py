@@ -75,7 +75,16 @@ def update_output_only(
     alone is refused in one line naming what is missing, :func:`~dtwin_jax.accelerometers.output_only_refusal`).
     """
     start = time.perf_counter()
-    if x is None or xdot is not None:
+    if x is None:  # accelerometers alone: ambient vibration
+        from dtwin_jax.update.output_only_accelerometers import update_from_accelerometers
+
+        if diffusion_library is not None and str(getattr(diffusion_library, "spec", diffusion_library)) != "terms:1":
+            raise DataError("accelerometers alone give a constant diffusion only: leave the diffusion library out")
+        return update_from_accelerometers(
+            nominal, t, xdot, xdot_names, output_only_library(library, nominal, OUTPUT_ONLY_LIBRARY),
+            pip_threshold=pip_threshold, settings=settings, seed=seed, progress=progress, previous=previous,
+            forget=forget, allow_repeat=allow_repeat)
+    if xdot is not None:
         output_only_refusal(nominal, xdot, xdot_names)
     rec = check_records(t, x, None, None, nominal)
     if np.any(np.asarray(nominal.F0) != 0):
