@@ -270,6 +270,7 @@ def _update(args, mode, nominal, data, *, library, diffusion_library=None, previ
                                x_names=data.get("x_names"), xdot_names=data.get("xdot_names"),
                                interpolation=data.get("u_interpolation", "auto"),
                                library=library, smoothing=args.smoothing, refine=getattr(args, "refine", False),
+                               reference=data.get("reference"),
                                **common)
 
 

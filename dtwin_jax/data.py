@@ -45,6 +45,17 @@ def _as_records(name: str, a, N: int, width: int | None, what: str) -> np.ndarra
     return a
 
 
+def check_signal(name: str, a, num_samples: int, num_records: int) -> np.ndarray:
+    """An extra measured signal (a closed loop's ``reference``) as ``(R, N, c)``: real, finite,
+    ``(N,)`` (one channel), ``(N, c)`` or ``(R, N, c)`` with the records and samples of ``x``;
+    one-line errors naming it."""
+    a = real_array(f"'{name}'", a)
+    a = _as_records(name, a[:, None] if a.ndim == 1 else a, num_samples, None, "c")
+    if a.shape[0] != num_records:
+        raise DataError(f"'{name}' has {a.shape[0]} records but 'x' has {num_records}")
+    return a
+
+
 # A step may differ from the mean step by this fraction. Loggers with a hardware clock write
 # times exact to their printed digits: 1024 Hz printed to 1 us is off by up to 1e-3 of a step.
 # Timing errors of 1% of a step move a sample by 1% of its change over a step, far below

@@ -98,7 +98,9 @@ def write_nominal(path, nominal: LinearSecondOrder) -> None:
 def load_measurements(path) -> dict:
     """Read ``t``, ``x`` and optional ``u``, ``xdot``, ``x_names``, ``xdot_names`` and
     ``u_interpolation`` (absent: chosen from the input's spectrum) from ``.npz`` or ``.csv``.
-    ``x`` may be absent when ``xdot`` is present (accelerometers alone).
+    ``x`` may be absent when ``xdot`` is present (accelerometers alone). An extension of
+    formats.md: ``reference`` (``.npz``, ``(N, r)`` or ``(R, N, r)``), a closed loop's
+    set-point, the instrument of :mod:`dtwin_jax.instruments`.
 
     A CSV file holds one record with header ``t,`` then measured state names (all of
     ``x1..xm`` or a subset, which become ``x_names``) ``[,u1..un]``; columns ``xdot1..``
@@ -119,7 +121,7 @@ def load_measurements(path) -> dict:
         if key not in data:
             raise DataError(f"measurement file '{path}' is missing key '{key}'")
     out = {"t": data["t"]} | ({"x": data["x"]} if "x" in data else {})
-    for key in ("u", "xdot"):
+    for key in ("u", "xdot", "reference"):
         if key in data:
             out[key] = data[key]
     for key, a in out.items():

@@ -39,7 +39,9 @@ class StageParams(NamedTuple):
     `force_noise` N (std of the measured motor force around the commanded one);
     `amplitude` m and `bandwidth` Hz of the smooth random reference around `centre` m (where
     the stage starts, at rest: the position never changes sign, as on a real axis);
-    `substeps` solver steps per sample."""
+    `substeps` solver steps per sample; `disturbance` N, the std of an unmeasured force on
+    the stage (a random load, cogging), band-limited to `disturbance_bandwidth` Hz, which the
+    controller fights: the input is then correlated with the equation error."""
 
     mass: float = 100.0
     viscous: float = 50.0
@@ -53,6 +55,8 @@ class StageParams(NamedTuple):
     bandwidth: float = 2.0
     centre: float = 0.05
     substeps: int = 16
+    disturbance: float = 0.0
+    disturbance_bandwidth: float = 5.0
 
 
 def stage_nominal(params: StageParams = StageParams()) -> LinearSecondOrder:
@@ -73,10 +77,21 @@ def _reference(key, t, params: StageParams):
     return params.centre + params.amplitude * ramp * r / jnp.max(jnp.abs(r))
 
 
+def _disturbance(key, t, params: StageParams):
+    """A random force of std `disturbance` N: 16 sinusoids up to `disturbance_bandwidth` Hz
+    with random phases and amplitudes."""
+    k1, k2 = jax.random.split(key)
+    freqs = params.disturbance_bandwidth * jnp.linspace(1.0 / 16, 1.0, 16)
+    phases = jax.random.uniform(k1, (16,), maxval=2 * jnp.pi)
+    weights = jax.random.uniform(k2, (16,), minval=0.5, maxval=1.0)
+    d = jnp.sum(weights * jnp.sin(2 * jnp.pi * freqs * t[:, None] + phases), axis=1)
+    return params.disturbance * d / jnp.std(d)
+
+
 def _plant_rate(s, y, args):
-    u, p = args
+    u, d, p = args
     q, v = y
-    force = u - p.viscous * v - p.coulomb * jnp.sign(v) - p.offset
+    force = u + d - p.viscous * v - p.coulomb * jnp.sign(v) - p.offset
     return jnp.stack([v, force / p.mass])
 
 
@@ -91,7 +106,8 @@ def positioning_stage(key, duration: float = 25.0, dt: float = 1e-3, params: Sta
 
     **Returns:** a dict with `t (N,)` s; `x (N, 1)` the measured (quantized) position m and
     `x_names = ["x1"]`; `u (N, 1)` the measured motor force N; `reference (N,)` m; and the
-    truth `q (N,)`, `v (N,)`, `force (N,)` (commanded, N).
+    truth `q (N,)`, `v (N,)`, `force (N,)` (commanded, N), `disturbance (N,)` N (held over each
+    sample, like the force).
     """
     if duration <= 0 or dt <= 0 or duration / dt < 16:
         raise DataError(f"positioning_stage needs at least 16 samples, got duration {duration} s at dt {dt} s")
@@ -100,6 +116,7 @@ def positioning_stage(key, duration: float = 25.0, dt: float = 1e-3, params: Sta
     k_ref, k_noise = jax.random.split(key)
     r = _reference(k_ref, t, params)
     rdot = jnp.gradient(r, dt)
+    dist = _disturbance(jax.random.fold_in(key, 7), t, params) if params.disturbance else jnp.zeros(N)
     term, solver = diffrax.ODETerm(_plant_rate), diffrax.Bosh3()
     h = dt / params.substeps
 
@@ -108,7 +125,7 @@ def positioning_stage(key, duration: float = 25.0, dt: float = 1e-3, params: Sta
         q_meas = jnp.round(y[0] / params.resolution) * params.resolution
         v_est = (q_meas - q_prev) / dt  # the drive's backward difference of the encoder
         u = params.kp * (r[k] - q_meas) + params.kd * (rdot[k] - v_est)  # no integral action: an offset error
-        sol = diffrax.diffeqsolve(term, solver, t0=0.0, t1=dt, dt0=h, y0=y, args=(u, params),
+        sol = diffrax.diffeqsolve(term, solver, t0=0.0, t1=dt, dt0=h, y0=y, args=(u, dist[k], params),
                                   stepsize_controller=diffrax.ConstantStepSize(),
                                   saveat=diffrax.SaveAt(t1=True), max_steps=params.substeps + 1)
         return (sol.ys[-1], q_meas), (y, q_meas, u)
@@ -119,5 +136,5 @@ def positioning_stage(key, duration: float = 25.0, dt: float = 1e-3, params: Sta
     return {
         "t": np.asarray(t), "x": np.asarray(q_meas)[:, None], "x_names": ["x1"],
         "u": np.asarray(force + noise)[:, None], "reference": np.asarray(r),
-        "q": np.asarray(states[:, 0]), "v": np.asarray(states[:, 1]), "force": np.asarray(force),
+        "q": np.asarray(states[:, 0]), "v": np.asarray(states[:, 1]), "force": np.asarray(force), "disturbance": np.asarray(dist),
     }

@@ -28,6 +28,7 @@ import numpy as np
 from dtwin_jax import sampler
 from dtwin_jax.denoise import auto_half_width, noise_std, savgol_design_ok, savgol_states
 from dtwin_jax.errors import DataError
+from dtwin_jax.instruments import instrumented_stats, reference_fit
 from dtwin_jax.library import Library
 from dtwin_jax.measurement import highest_natural_frequency_hz, savgol_coefficients, smooth
 from dtwin_jax.systems import LinearSecondOrder
@@ -332,7 +333,7 @@ def _library_states(nominal, x, x_index, u, dt, hw, noise_var, interpolation):
 def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *, x_index=None,
                             width: int | None = None, stride: int | None = None, power: int = _POWER,
                             interpolation: str = "held", noise_var=None,
-                            equation_error: bool = True) -> tuple[sampler.SuffStats, dict]:
+                            equation_error: bool = True, reference=None) -> tuple[sampler.SuffStats, dict]:
     """Weak-form statistics from measured states without rates.
 
     **Arguments:**
@@ -347,6 +348,8 @@ def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *
       Savitzky-Golay residual of each, pooled over records).
     - ``equation_error``: add a white equation error to the rows' covariance, its size by
       restricted maximum likelihood (False: measurement noise only).
+    - ``reference``: ``(R, N, r)`` a closed loop's reference signal, or None; given, it is the
+      instrument of a two-stage least squares (:mod:`dtwin_jax.instruments`).
 
     **Returns:** ``(SuffStats`` batched over the regressed equations``, description dict)``.
     """
@@ -368,10 +371,14 @@ def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *
     noise_var = np.asarray(noise_var, dtype=np.float64)
     samples = x.shape[0] * x.shape[1]
     full, spread, velocity = _library_states(nominal, x, x_index, u, dt, hw, noise_var, interpolation)
+    if reference is not None:  # the states and inputs the reference explains
+        fitted = reference_fit(np.concatenate([full, u], axis=-1), reference, dt)
     missing = [(i - nominal.d, i) for i in range(nominal.m) if i not in x_index]
     length = _segment_length(t.size, width, stride)
     if length < t.size:  # a long record: segments, each a record of its own
         x, u, full = _segments(x, length), _segments(u, length), _segments(full, length)
+        if reference is not None:
+            fitted = _segments(fitted, length)
     R, N, _ = x.shape
     Phi, dPhi, Phi_u, ddPhi = window_quadrature(N, dt, width, stride, power, held=interpolation == "held",
                                                 second=True)
@@ -402,7 +409,13 @@ def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *
         for i in range(len(idx)):
             weights[i] = _reml_weight(Ls[some], Y[some, :, i], S_x[i], S_w)
     cov = S_x + weights[:, None, None] * S_w[None]
-    stats = weak_stats(jnp.asarray(Y), jnp.asarray(L), jnp.asarray(cov))
+    if reference is None:
+        stats = weak_stats(jnp.asarray(Y), jnp.asarray(L), jnp.asarray(cov))
+    else:
+        m = nominal.m
+        Z = np.array(jax.vmap(lambda a, b: jnp.asarray(Phi) @ lib(a, b))(jnp.asarray(fitted[..., :m]),
+                                                                        jnp.asarray(fitted[..., m:])))
+        stats = instrumented_stats(Y, L, Z, cov)
     scale = np.ones(len(idx))
     if equation_error:  # what whitening leaves correlated (coloured model error) counts once
         for i in range(len(idx)):
@@ -418,5 +431,6 @@ def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *
             "equation_error_share": [float(w * np.trace(S_w) / (w * np.trace(S_w) + np.trace(S_x[i])))
                                      for i, w in enumerate(weights)],
             "velocities_estimated": [names[v] for _, v in missing], "velocity_estimate": velocity,
-            "integrated_by_parts": sorted(lib.names[k] for k in by_parts)}
+            "integrated_by_parts": sorted(lib.names[k] for k in by_parts),
+            **({"instrument": "the reference's lags (two-stage least squares)"} if reference is not None else {})}
     return stats, info

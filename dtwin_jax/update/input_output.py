@@ -23,7 +23,7 @@ from dtwin_jax.accelerometers import (
 )
 from dtwin_jax.checks import residual_checks
 from dtwin_jax.collinearity import collinearity_checks, twin_coefficients
-from dtwin_jax.data import Records, check_records, state_range
+from dtwin_jax.data import Records, check_records, check_signal, state_range
 from dtwin_jax.denoise import (
     auto_half_width,
     kinematic_smoother,
@@ -86,6 +86,7 @@ def update_input_output(
     forget: float = 1.0,
     allow_repeat: bool = False,
     refine: bool = False,
+    reference=None,
 ) -> UpdateResult:
     """Discover the perturbation of ``nominal`` from input-output measurements.
 
@@ -109,6 +110,11 @@ def update_input_output(
     selected terms' coefficients by output error on the same data
     (:func:`dtwin_jax.update.refine_output_error`, from the denoised initial states, each
     state weighed by its smoothing residual): a sharper twin for long free runs.
+    ``reference``: ``(N, r)`` or ``(R, N, r)`` the set-point of a closed loop, or None. The
+    estimator assumes that the equation error is white and independent of the columns; under
+    feedback an unmeasured force reaches the input, and that fails. Given, the reference is
+    the instrument of a two-stage least squares (:mod:`dtwin_jax.instruments`), on the weak
+    form's route (states measured without rates).
     """
     start = time.perf_counter()
     if interpolation != "auto":
@@ -137,6 +143,11 @@ def update_input_output(
     weak_ok = rec.xdot is None and weak_layout_supported(nominal, x_index)
     if smoothing == "weak" and not weak_ok:
         raise DataError("smoothing='weak' needs every displacement and extra state measured and no measured rates")
+    if reference is not None:
+        reference = check_signal("reference", reference, rec.t.size, rec.x.shape[0])
+        if not weak_ok or smoothing not in ("auto", "weak"):
+            raise DataError("a 'reference' instrument needs the weak form: every displacement measured, no rates, "
+                            "smoothing auto or weak")
     # At a few samples per period the weak form's sums are exact for a band-limited input's
     # response only: a held input's steps alias (a 9-samples-per-period Duffing under held
     # white noise: free run 68% off, against 7% by the state-space smoother).
@@ -145,6 +156,9 @@ def update_input_output(
         # benchmarks/weak_form.py: 0.64% vs 3.15% median cubic error at 5% noise (states);
         # benchmarks/zoo.py --layout displacement: the state-space route found nothing.
         smoothing = "weak"
+    if reference is not None and smoothing != "weak":
+        raise DataError("a 'reference' instrument needs the weak form, which these data cannot use (too few samples "
+                        "per period or a record shorter than one window)")
     warnings = []
     if smoothing == "auto" and rec.xdot is None and not savgol_design_ok(nominal, rec.dt):
         warnings.append(
@@ -197,7 +211,7 @@ def update_input_output(
         n_eff, feedback = None, None
         if smoothing == "weak":  # the Savitzky-Golay rates above serve the residual checks only
             stats, weak_info = weak_input_output_stats(nominal, lib, rec.t, rec.x, rec.u, x_index=x_index,
-                                                       interpolation=interpolation)
+                                                       interpolation=interpolation, reference=reference)
             smoothing_info = {"states": smoothing_info, "regression": weak_info}
         if accelerometers:  # the weak form: the nominal part exact, whatever the states
             stats, weak_info, feedback, more = accelerometer_regression(nominal, lib, rec.dt, a, rec.u, xs, smoothing_info,
