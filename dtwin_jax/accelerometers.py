@@ -27,7 +27,8 @@ Measured (``benchmarks/zoo.py --layout accelerometers``; before, the plain fixed
 high-passed pointwise regression: 60% exact support, 41% HDI coverage on 20 members): see the
 README's sensors table.
 
-Output-only (no force measured) from accelerometers is refused (:func:`output_only_refusal`).
+Output-only (no force measured) from accelerometers uses the same states with the force white and
+unknown (:mod:`dtwin_jax.update.output_only_accelerometers`).
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ from dtwin_jax.kalman import kalman_filter, rts_smoother
 from dtwin_jax.systems import LinearSecondOrder
 
 __all__ = ["CROSSOVER", "ERROR_DRAWS", "MAX_FEEDBACK", "accelerometer_layout", "check_accelerometer_layout",
-           "sampler_selection", "output_only_refusal", "anchored_smoother", "accelerometer_states", "state_feedback",
+           "sampler_selection", "anchored_smoother", "accelerometer_states", "state_feedback",
            "widened_draws"]
 
 # The anchor and the integrated accelerations cross over at the lowest natural frequency over
@@ -119,31 +120,6 @@ def accelerometer_layout(nominal: LinearSecondOrder, xdot, xdot_names, u, refine
     check_accelerometer_layout(nominal, measured_index(xdot_names, nominal, "xdot_names"))
     xdot = real_array("'xdot'", xdot)
     return np.zeros(xdot.shape[:-1] + (0,)), []
-
-
-def output_only_refusal(nominal: LinearSecondOrder, xdot, xdot_names) -> None:
-    """Refuse output-only data with measured rates, in one line naming what is missing.
-
-    **Arguments:**
-
-    - ``nominal``: the nominal model.
-    - ``xdot``: the measured rates, or None.
-    - ``xdot_names``: their states (None: all ``m``).
-
-    **Returns:**
-
-    Never; raises :class:`DataError`. With nothing measured, or a degree of freedom without an
-    accelerometer, it names the missing ``xdot``. Otherwise (accelerometers alone, ambient
-    vibration): the drift could be anchored without the force (its white part is the
-    anchor's noise), but the diffusion cannot be told from the accelerometers' own white
-    noise by this update yet, so it asks for the states ``x`` or the force ``u``."""
-    from dtwin_jax.estimate import measured_index
-
-    if xdot is None:
-        raise DataError("no measurement of the states: output-only needs 'x' (states)")
-    check_accelerometer_layout(nominal, measured_index(xdot_names, nominal, "xdot_names"))
-    raise DataError("output-only from accelerometers alone is not supported yet: the diffusion needs the states "
-                    "'x' (or measure the force 'u' and update input-output)")
 
 
 def _drive(nominal: LinearSecondOrder, a, u):
@@ -285,7 +261,7 @@ def accelerometer_states(nominal: LinearSecondOrder, dt: float, xdot, xdot_index
                          crossover: float = CROSSOVER, max_iterations: int = MAX_ITERATIONS,
                          interpolation: str = "held", error_draws: int = ERROR_DRAWS,
                          seed: int = 0, force_variance=None, acceleration_noise_std=None,
-                         white_force=None) -> tuple[np.ndarray, np.ndarray, dict]:
+                         refit=None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Every state and rate from accelerometers and the force, the twin in the anchor's loop.
 
     The first states come from the anchor of the equivalent linear model (the nominal plus
@@ -316,8 +292,9 @@ def accelerometer_states(nominal: LinearSecondOrder, dt: float, xdot, xdot_index
     - ``force_variance``: ``(d,)`` variance per sample of an unmeasured force in the anchor
       (:func:`anchored_smoother`), or None.
     - ``acceleration_noise_std``: ``(d,)`` the accelerometers' noise std, or None (estimated).
-    - ``white_force``: ``(d,)`` the white force's acceleration variance per sample, whose
-      correlation with the columns the settled support's fit takes out (output-only), or None.
+    - ``refit``: ``refit(x, index) -> (P,)`` the settled support's coefficients at states
+      ``x``, ``index`` a list of ``(equation, column)``; None: generalized least squares on
+      the weak rows (output-only passes its own rows' fit).
 
     **Returns:**
 
@@ -359,7 +336,9 @@ def accelerometer_states(nominal: LinearSecondOrder, dt: float, xdot, xdot_index
         else:  # the support has settled: its coefficients by least squares, no sampler run
             index = [(e, int(k)) for e in range(coef.shape[0]) for k in np.flatnonzero(coef[e])]
             coef = np.zeros_like(coef)
-            for (e, k), v in zip(index, _selected_fit(nominal, lib, dt, a, uu, x, index, interpolation, white_force)):
+            values = (_selected_fit(nominal, lib, dt, a, uu, x, index, interpolation) if refit is None
+                      else refit(x, index))
+            for (e, k), v in zip(index, values):
                 coef[e, k] = v
         force, jac = _linearized(nominal, lib, coef, x, uu)
         anchor = force - np.einsum("rnij,rnj->rni", jac, x)
@@ -399,14 +378,14 @@ def accelerometer_states(nominal: LinearSecondOrder, dt: float, xdot, xdot_index
 
 
 def sampler_selection(nominal: LinearSecondOrder, dt: float, a, lib, u, settings, seed: int,
-                      interpolation: str = "held", white_force=None):
+                      interpolation: str = "held"):
     """The ``select`` of :func:`accelerometer_states`: the coefficients of the terms with
     inclusion probability above 1/2 (the posterior mean with zeros counted spreads weight over
     a large library's look-alikes, ``x1**6`` and the like, whose linearization threw the
     loop off) in a short sampler run
     (:func:`~dtwin_jax.update.output_only_stats.first_pass_settings`) on the weak-form
     statistics of accelerations ``a (R, N, d)`` and inputs ``u (R, N, n)`` at states
-    ``x (R, N, m)``; ``white_force``: as :func:`accelerometer_states`."""
+    ``x (R, N, m)``."""
     from dtwin_jax.update.output_only_stats import first_pass_settings
     from dtwin_jax.update.sampling import _sample_equations, posteriors
     from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats
@@ -414,21 +393,19 @@ def sampler_selection(nominal: LinearSecondOrder, dt: float, a, lib, u, settings
     names = [nominal.state_names[i] for i in nominal.regressed_index]
 
     def select(x):
-        stats, _ = accelerometer_weak_stats(nominal, lib, dt, a, u, x, interpolation=interpolation,
-                                            white_force=white_force)
+        stats, _ = accelerometer_weak_stats(nominal, lib, dt, a, u, x, interpolation=interpolation)
         trace = _sample_equations(stats, first_pass_settings(settings), seed, False)
         return np.stack([e.coefficients for e in posteriors(trace, names, "drift", lib.names, 0.5)])
 
     return select
 
 
-def _selected_fit(nominal, lib, dt, a, u, x, index, interpolation, white_force=None) -> np.ndarray:
+def _selected_fit(nominal, lib, dt, a, u, x, index, interpolation) -> np.ndarray:
     """Generalized least squares of the selected terms ``index [(equation, column)]`` on the
     weak rows at states ``x``, stacked in ``index`` order."""
     from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats
 
-    stats, _ = accelerometer_weak_stats(nominal, lib, dt, a, u, x, interpolation=interpolation, equation_error=False,
-                                        white_force=white_force)
+    stats, _ = accelerometer_weak_stats(nominal, lib, dt, a, u, x, interpolation=interpolation, equation_error=False)
     gram, xty = np.asarray(stats.gram), np.asarray(stats.xty)
     out = np.zeros(len(index))
     for e in sorted({e for e, _ in index}):
@@ -439,8 +416,7 @@ def _selected_fit(nominal, lib, dt, a, u, x, index, interpolation, white_force=N
 
 
 def state_feedback(nominal: LinearSecondOrder, lib, dt: float, a, u, x, coef, error_draws, *,
-                   interpolation: str = "held", steps: int = 3, max_gain: float = MAX_FEEDBACK,
-                   white_force=None) -> dict:
+                   interpolation: str = "held", steps: int = 3, max_gain: float = MAX_FEEDBACK) -> dict:
     """How much the anchor's loop feeds the coefficients back into themselves, and the states'
     own uncertainty: the widening of the selected terms' posterior.
 
@@ -460,7 +436,6 @@ def state_feedback(nominal: LinearSecondOrder, lib, dt: float, a, u, x, coef, er
     - ``x``: ``(R, N, m)`` the loop's final states; ``coef``: ``(q, K)`` its coefficients.
     - ``error_draws``: ``(S, R, N, m)`` draws of the states' estimation error.
     - ``steps``: Gauss-Newton steps of the anchor per evaluation of ``T``.
-    - ``white_force``: as :func:`accelerometer_states`.
     - ``max_gain``: ``T'`` is scaled to at most this spectral radius (a neutral direction then
       widens ``(1 - max_gain)^-1/2`` times); beyond 1 it is not used.
 
@@ -481,7 +456,7 @@ def state_feedback(nominal: LinearSecondOrder, lib, dt: float, a, u, x, coef, er
         for _ in range(steps):
             force, jac = _linearized(nominal, lib, cf, xs, u)
             xs, _ = anchored_smoother(nominal, dt, a, u, force - np.einsum("rnij,rnj->rni", jac, xs), jac, crossover=None)
-        return _selected_fit(nominal, lib, dt, a, u, xs, index, interpolation, white_force)
+        return _selected_fit(nominal, lib, dt, a, u, xs, index, interpolation)
 
     base = T(theta0)
     P = len(index)
@@ -500,8 +475,7 @@ def state_feedback(nominal: LinearSecondOrder, lib, dt: float, a, u, x, coef, er
     # The fixed point's covariance is the regression's times (I - T')^-1 (Meng and Rubin's
     # SEM for a self-consistent estimate): draws are moved by its square root.
     gain = np.real(sqrtm(inverse))
-    fits = np.array([_selected_fit(nominal, lib, dt, a, u, x + draw, index, interpolation, white_force)
-                     for draw in error_draws])
+    fits = np.array([_selected_fit(nominal, lib, dt, a, u, x + draw, index, interpolation) for draw in error_draws])
     extra = np.atleast_2d(np.cov(fits.T)) if len(fits) > 1 else np.zeros((P, P))
     return {"index": index, "gain": gain, "extra": extra, "eigenvalues": sorted(np.abs(lam).tolist(), reverse=True)}
 

@@ -255,7 +255,7 @@ def _update(args, mode, nominal, data, *, library, diffusion_library=None, previ
             raise DataError("--refine needs input-output data (output error simulates the measured input)")
         from dtwin_jax.update.output_only import update_output_only
 
-        if "x" not in data:  # accelerometers alone: the update says what it cannot estimate
+        if "x" not in data:  # accelerometers alone: ambient vibration
             return update_output_only(nominal, data["t"], None, xdot=data["xdot"], xdot_names=data.get("xdot_names"),
                                       library=library, diffusion_library=diffusion_library, **common)
         if data.get("x_names") not in (None, list(nominal.state_names)) or "xdot" in data:

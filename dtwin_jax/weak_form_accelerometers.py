@@ -117,11 +117,6 @@ def equivalent_linear(nominal: LinearSecondOrder, dt: float, a, u, interpolation
     ``a (R, N, d)``, ``u (R, N, n)``; least squares over every window and record."""
     rows = _rows(nominal, dt, np.asarray(a, dtype=np.float64), np.asarray(u, dtype=np.float64), interpolation,
                  None, _POWER)
-    return _linear_fit(rows)
-
-
-def _linear_fit(rows: dict) -> np.ndarray:
-    """:func:`equivalent_linear` from the weak rows of :func:`_rows`."""
     d = rows["Y"].shape[-1]
     X = np.concatenate([rows["Ia"], -rows["Da"]], axis=-1).reshape(-1, 2 * d)
     scale = np.maximum(np.linalg.norm(X, axis=0), 1e-300)
@@ -131,7 +126,7 @@ def _linear_fit(rows: dict) -> np.ndarray:
 
 def accelerometer_weak_stats(nominal: LinearSecondOrder, lib: Library, dt: float, a, u, x, *,
                              interpolation: str = "held", state_draws=None, coef=None,
-                             equation_error: bool = True, white_force=None, width: int | None = None,
+                             equation_error: bool = True, width: int | None = None,
                              power: int = _POWER) -> tuple[sampler.SuffStats, dict]:
     """Weak-form statistics of the velocity equations from accelerations and force.
 
@@ -147,9 +142,6 @@ def accelerometer_weak_stats(nominal: LinearSecondOrder, lib: Library, dt: float
     - ``state_draws``: ``(S, R, N, m)`` draws of the states' estimation error, or None; with
       ``coef (q, K)``, the error they put into those terms enters the rows' covariance.
     - ``equation_error``: add a white equation error sized by REML.
-    - ``white_force``: ``(d,)`` the variance per sample (state units^2 / s^4, ``Gamma / dt``)
-      of a white force driving the states (output-only: ambient vibration), or None. Its
-      correlation with the library columns is taken out of the statistics (:func:`_ito_bias`).
     - ``width``: window in samples (default: one period of the fastest nominal mode).
     - ``power``: p of ``chi = (s (1 - s))^p``.
 
@@ -189,11 +181,6 @@ def accelerometer_weak_stats(nominal: LinearSecondOrder, lib: Library, dt: float
             weights[i] = _reml_weight(Ls, Y[..., i], base[i], S_w)
     cov = base + weights[:, None, None] * S_w[None]
     stats = weak_stats(jnp.asarray(Y), jnp.asarray(L), jnp.asarray(cov))
-    if white_force is not None:
-        flow = _equivalent_flow(nominal, rows)
-        bias = _ito_bias(lib, x, u, ddPhi, cov, flow, dt, np.asarray(white_force, dtype=np.float64),
-                         list(nominal.velocity_index))
-        stats = stats._replace(xty=jnp.asarray(np.asarray(stats.xty) - bias))
     if equation_error:
         for i in range(d):
             scale[i] = _effective_share(Ls, Y[..., i], cov[i])
@@ -211,54 +198,3 @@ def accelerometer_weak_stats(nominal: LinearSecondOrder, lib: Library, dt: float
         "state_error_share": [float(np.trace(S_e[i]) / max(np.trace(cov[i]), 1e-300)) for i in range(d)],
     }
     return stats, info
-
-
-def _equivalent_flow(nominal: LinearSecondOrder, rows: dict) -> np.ndarray:
-    """The state matrix ``(m, m)`` of the equivalent linear model: the nominal's Jacobian with
-    the linear correction that fits the accelerations best (:func:`equivalent_linear`)."""
-    m, d = nominal.m, nominal.d
-    A = np.array(jax.jacfwd(nominal.rate)(jnp.zeros(m), jnp.zeros(nominal.n)))
-    A[np.asarray(nominal.velocity_index)[:, None], np.arange(2 * d)[None]] += _linear_fit(rows)
-    return A
-
-
-def _ito_bias(lib: Library, x, u, ddPhi, cov, flow, dt: float, white_force, vel) -> np.ndarray:
-    """The expected ``L^T cov^-1 e`` ``(d, K)`` of the weak rows under a white force: a column
-    at time ``t`` responds to the force before ``t`` within its window, which is also in the
-    row's error (the weak form of an Ito diffusion is not orthogonal; with the true states of
-    zoo-0002 the least squares of ``x1**2, x2`` gave a spurious linear damping of +6.3 /s, and
-    -0.17 /s corrected).
-
-    ``E[h_k(x(t)) xi_s] = E[dh_k/dx] Phi(t - s) e_v Gamma`` for ``s < t`` (half at ``s = t``, the
-    accelerometer's interval centred on the sample), with ``Phi`` the equivalent linear flow
-    ``flow (m, m)`` and ``xi`` the force's acceleration (variance ``white_force (d,)`` per
-    sample). ``E[dh/dx]`` is the Gaussian statistical linearization over the data (Stein's
-    lemma, ``Cov(x)^-1 Cov(x, h)``): linear in ``h``, so columns that nearly cancel on the data
-    get corrections that nearly cancel too (pointwise gradients did not: ``sign(x2)``'s is zero,
-    and the odd velocity terms of zoo-0004 then took PIP 1 with coefficients of +-200).
-
-    ``x (R, N, m)``, ``u (R, N, n)``, ``ddPhi (W, N)``, ``cov (d, W, W)``, ``vel``: the velocity
-    states' indices."""
-    from scipy.linalg import cho_factor, cho_solve, expm
-
-    R, N, m = x.shape
-    values = np.asarray(lib(jnp.asarray(x.reshape(R * N, m)), jnp.asarray(u.reshape(R * N, -1))))
-    xc = x.reshape(R * N, m) - x.reshape(R * N, m).mean(axis=0)
-    grad = np.linalg.lstsq(xc, values - values.mean(axis=0), rcond=None)[0].T  # (K, m)
-    step = expm(np.asarray(flow) * dt)
-    W = ddPhi.shape[0]
-    bias = np.zeros((len(vel), grad.shape[0]))
-    for i, v in enumerate(vel):
-        # psi[w, n] = sum_{s <= n} ddPhi[w, s] Phi(t_n - t_s) e_v, the last term halved.
-        P = np.zeros((W, m))
-        psi = np.zeros((W, N, m))
-        for n in range(N):
-            P = P @ step.T
-            P[:, v] += ddPhi[:, n]
-            psi[:, n] = P
-            psi[:, n, v] -= 0.5 * ddPhi[:, n]
-        c = cov[i] + 1e-10 * np.trace(cov[i]) / W * np.eye(W)
-        whitened = cho_solve(cho_factor(c, lower=True), psi.reshape(W, -1)).reshape(W, N, m)
-        chi = np.einsum("wn,wnj->j", ddPhi, whitened)
-        bias[i] = white_force[i] * dt * R * grad @ chi
-    return bias

@@ -34,7 +34,7 @@ def without_constant_columns(lib: Library, nominal: LinearSecondOrder, u) -> tup
 
 
 def accelerometer_regression(nominal: LinearSecondOrder, lib: Library, dt: float, a, u, x, states_info: dict,
-                             loop_names, interpolation: str, white_force=None) -> tuple:
+                             loop_names, interpolation: str) -> tuple:
     """The weak-form statistics at the anchored states and the feedback's widening.
 
     **Arguments:**
@@ -46,9 +46,6 @@ def accelerometer_regression(nominal: LinearSecondOrder, lib: Library, dt: float
       ``states_info`` its info (``error_draws`` and ``coefficients`` are taken out of it).
     - ``loop_names``: the term names of the library the loop ran with.
     - ``interpolation``: the inputs' (``"held"`` or ``"bandlimited"``).
-    - ``white_force``: ``(d,)`` a white force's acceleration variance per sample (output-only),
-      or None (:func:`~dtwin_jax.weak_form_accelerometers.accelerometer_weak_stats`).
-
     **Returns:** ``(stats, info, feedback or None, warnings)``: the
     :class:`~dtwin_jax.sampler.SuffStats` of the velocity equations, the weak form's
     description, :func:`~dtwin_jax.accelerometers.state_feedback`'s result, and warnings."""
@@ -56,11 +53,10 @@ def accelerometer_regression(nominal: LinearSecondOrder, lib: Library, dt: float
     if coef is not None:  # the loop's coefficients on the library as reduced since
         coef = coef[:, [list(loop_names).index(name) for name in lib.names]]
     stats, info = accelerometer_weak_stats(nominal, lib, dt, a, u, x, interpolation=interpolation,
-                                           state_draws=draws, coef=coef, white_force=white_force)
+                                           state_draws=draws, coef=coef)
     feedback, warnings = None, []
     if coef is not None and draws is not None:
-        feedback = state_feedback(nominal, lib, dt, a, u, x, coef, draws, interpolation=interpolation,
-                                  white_force=white_force)
+        feedback = state_feedback(nominal, lib, dt, a, u, x, coef, draws, interpolation=interpolation)
         widening = float(np.max(np.linalg.svd(feedback["gain"], compute_uv=False), initial=1.0))
         info["state_feedback"] = {"eigenvalues": [round(v, 4) for v in feedback["eigenvalues"][:4]],
                                   "largest_widening": widening}

@@ -14,7 +14,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import aot, kramers_moyal, sampler, statespace
-from dtwin_jax.accelerometers import output_only_refusal
 from dtwin_jax.ahead import Ahead
 from dtwin_jax.checks import residual_checks
 from dtwin_jax.collinearity import collinearity_checks
@@ -71,8 +70,9 @@ def update_output_only(
     one ``drift`` equation per regressed state and one ``diffusion`` equation (the diagonal
     ``Gamma_ii = (G G^T)_ii``, units of velocity^2 / s) per velocity. ``previous``,
     ``forget`` and ``allow_repeat``: a re-update, as in :func:`update_input_output` (drift and diffusion).
-    ``xdot``, ``xdot_names``: measured rates; not taken yet (``x=None`` with accelerometers
-    alone is refused in one line naming what is missing, :func:`~dtwin_jax.accelerometers.output_only_refusal`).
+    ``x=None`` with ``xdot``, ``xdot_names``: accelerometers alone (ambient vibration), by
+    :func:`~dtwin_jax.update.output_only_accelerometers.update_from_accelerometers` (a constant
+    diffusion; no re-update yet). Measured rates beside ``x`` are refused in one line.
     """
     start = time.perf_counter()
     if x is None:  # accelerometers alone: ambient vibration
@@ -85,7 +85,7 @@ def update_output_only(
             pip_threshold=pip_threshold, settings=settings, seed=seed, progress=progress, previous=previous,
             forget=forget, allow_repeat=allow_repeat)
     if xdot is not None:
-        output_only_refusal(nominal, xdot, xdot_names)
+        raise DataError("output-only takes the states 'x' or accelerometers alone ('xdot' without 'x'), not both yet")
     rec = check_records(t, x, None, None, nominal)
     if np.any(np.asarray(nominal.F0) != 0):
         raise DataError("output-only updates do not take a nominal F0 yet: set it to zero and keep the constant term '1' in the library")

@@ -1,21 +1,27 @@
 """Framework 2 from accelerometers alone: the ambient vibration of a structure in service.
 
 Nothing but the accelerations ``a`` of the degrees of freedom is measured; the force is white
-and unknown (the Ito diffusion of framework 2). The states come from the anchored smoother
+and unknown (the Ito diffusion of framework 2). An accelerometer's sample is the velocity's
+increment over its interval over ``dt``: the Kramers-Moyal target of framework 2, measured
+rather than differenced. The states come from the anchored smoother
 (:mod:`dtwin_jax.accelerometers`) with no input: the kinematic chains integrate the measured
-accelerations, and the equation of motion anchors them below the first mode, its force being
-the white one. The drift perturbation is the weak form of the velocity equations
-(:mod:`dtwin_jax.weak_form_accelerometers`), whose rows need no state estimate for the nominal
-part, and the diffusion is their white equation error.
+accelerations, and the equation of motion anchors them below the first mode, its force the
+white one. Each row regresses a sample on the library at the state the drift predicts for it
+from the sample before (non-anticipating, as Ito's calculus needs; the increment's O(dt) term
+cancels, as in framework 2's moved regressors).
 
-The accelerations' white floor ``T`` (their Savitzky-Golay residual) is the sensor's noise
-plus the force's ``Gamma / dt``; the two enter the weak rows through different filters (the
-sensor's through ``chi''``, ``chi'`` and ``chi`` weighted by the nominal ``K`` and ``C``, the
-force's through ``chi''`` only), so the rows' restricted likelihood splits them. The smoother
-needs the split (the sensor's share is its kinematic chains' noise, the force's its anchor's), so
-the split and the states are iterated: measured on zoo-0000 (2 s x 10 records, 3% sensor
-noise), the first pass with the whole floor as sensor noise gave ``Gamma / dt`` 67 (truth
-105.6), the second 103.5, the third 103.9.
+The weak form of :mod:`dtwin_jax.weak_form_accelerometers` is not used for the drift here: its
+windows hold the white force both in the rows' error and in the states that the columns see
+(with the true states of zoo-0002, least squares took a spurious damping of +6.3 /s), and its
+``chi''`` weighting leaves little of a damping force. Measured on zoo members 0-39 (10
+records x 2 s; ``benchmarks/results/zoo_output_only_accelerometers.md``): 42% exact with the
+weak form and an Ito correction, 80% with these rows (every damping member exact).
+
+Its restricted likelihood serves the diffusion: the accelerations' white floor ``T`` (their
+Savitzky-Golay residual) is the sensors' noise plus the force's ``Gamma / dt``, and the two
+enter the weak rows through different filters, which splits them. The smoother needs the split
+(the sensors' share is its kinematic chains' noise, the force's its anchor's), so states and
+split are iterated.
 """
 
 from __future__ import annotations
@@ -23,9 +29,10 @@ from __future__ import annotations
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax.accelerometers import ERROR_DRAWS, accelerometer_layout, accelerometer_states, sampler_selection, widened_draws
+from dtwin_jax.accelerometers import ERROR_DRAWS, accelerometer_layout, accelerometer_states, widened_draws
 from dtwin_jax.collinearity import collinearity_checks
 from dtwin_jax.data import check_records, state_range
 from dtwin_jax.errors import DataError
@@ -36,19 +43,21 @@ from dtwin_jax.progress import Stages
 from dtwin_jax.resources import check_update
 from dtwin_jax.sampler import SuffStats
 from dtwin_jax.systems import LinearSecondOrder
-from dtwin_jax.update.accelerometer_regression import accelerometer_regression, without_constant_columns
+from dtwin_jax.update.accelerometer_regression import without_constant_columns
 from dtwin_jax.update.lifecycle import check_repeat, updated_history
+from dtwin_jax.update.output_only_stats import first_pass_settings
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 from dtwin_jax.update.sampling import _sample_equations, numpy_stats, posteriors
+from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats
 
-__all__ = ["CONSTANT_DIFFUSION", "SPLIT_PASSES", "update_from_accelerometers"]
+__all__ = ["CONSTANT_DIFFUSION", "SPLIT_PASSES", "update_from_accelerometers", "increment_stats"]
 
-# The diffusion of each velocity is one constant (its equation error): formats.md's
-# "constant-only diffusion is the term 1".
+# The diffusion of each velocity is one constant: formats.md's "constant-only diffusion is the
+# term 1".
 CONSTANT_DIFFUSION = "terms:1"
-# Passes of the states with the sensor / force split re-estimated (the module's note).
+# Passes of the states, the sensor / force split re-estimated after each but the last.
 SPLIT_PASSES = 3
-# The smoother's inputs are integrated as band-limited signals (the force is broadband).
+# The smoother's and the weak rows' inputs are integrated as band-limited (the force is broadband).
 _INTERPOLATION = "bandlimited"
 
 
@@ -64,7 +73,7 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
       positive definite, no extra states).
     - ``t``: ``(N,)`` sample times, s, uniform.
     - ``xdot``: ``(N, s)`` or ``(R, N, s)`` measured rates; those of the velocity states are the
-      accelerations (state units / s^2).
+      accelerometers' averages over each sample's interval (state units / s^2).
     - ``xdot_names``: the states of its columns (None: all ``m``).
     - ``lib``: the drift library (no inputs); a constant column is left out with a warning.
     - ``pip_threshold``, ``settings``, ``seed``, ``progress``, ``allow_repeat``: as
@@ -95,39 +104,41 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
     a = rec.xdot[..., [xdot_index.index(i) for i in vel]]
     dt, M2 = rec.dt, np.diag(np.asarray(nominal.M)) ** 2
     regressed = [nominal.state_names[i] for i in nominal.regressed_index]
+
+    def select(xs):  # the anchor's terms: PIP > 1/2 in a short run on the increments
+        trace = _sample_equations(increment_stats(nominal, lib, dt, a, xs), first_pass_settings(settings), seed, False)
+        return np.stack([e.coefficients for e in posteriors(trace, regressed, "drift", lib.names, 0.5)])
+
+    def refit(xs, index):  # the settled support's least squares on the increments
+        return _selected_fit(increment_stats(nominal, lib, dt, a, xs), index)
+
     stages = Stages(progress, 3, "output-only update (accelerometers)")
     with stages("states and the sensor / force split"):
         sensor = force = None
         for p in range(SPLIT_PASSES):
             final = p == SPLIT_PASSES - 1
-            select = sampler_selection(nominal, dt, a, lib, u, settings, seed, _INTERPOLATION, force)
             xs, _, states_info = accelerometer_states(
                 nominal, dt, rec.xdot, xdot_index, u, lib, select, interpolation=_INTERPOLATION, seed=seed,
-                error_draws=ERROR_DRAWS if final else 0, white_force=force,
+                error_draws=ERROR_DRAWS if final else 0, refit=refit,
                 force_variance=None if force is None else M2 * force,
                 acceleration_noise_std=None if sensor is None else np.sqrt(sensor))
-            if final:
-                break
-            stats, info, _, _ = accelerometer_regression(nominal, lib, dt, a, u, xs, states_info, lib.names,
-                                                         _INTERPOLATION, force)
-            sensor, force = _split(info)
+            _, weak = accelerometer_weak_stats(nominal, lib, dt, a, u, xs, interpolation=_INTERPOLATION)
+            sensor, force = _split(weak)
     with stages("drift sampling"):
-        stats, info, feedback, more = accelerometer_regression(nominal, lib, dt, a, u, xs, states_info, lib.names,
-                                                               _INTERPOLATION, force)
-        warnings.extend(more)
+        draws, coef = states_info.pop("error_draws", None), states_info.pop("coefficients")
+        stats = increment_stats(nominal, lib, dt, a, xs)
         trace = jax.block_until_ready(_sample_equations(stats, settings, seed, progress))
-        if feedback is not None:
-            trace = trace._replace(theta=widened_draws(trace.theta, trace.gamma, feedback, seed))
+        errors = _errors_in_variables(nominal, lib, dt, a, xs, coef, draws)
+        if errors is not None:  # the states' estimation error, in the selected terms' draws
+            trace = trace._replace(theta=widened_draws(trace.theta, trace.gamma, errors, seed))
         drift = posteriors(trace, regressed, "drift", lib.names, pip_threshold)
     with stages("diffusion"), stages:
-        sensor, force = _split(info)
-        # The rows' noise scale carries the estimate's spread (its mean is not used, above).
+        # The increments' noise scale carries the estimate's spread (its level is the split's).
         sigma2 = np.asarray(trace.sigma2)  # (d, chains, draws)
         gamma_draws = (force * dt)[:, None, None] * sigma2 / sigma2.mean(axis=(1, 2), keepdims=True)
         velocities = [nominal.state_names[i] for i in vel]
-        diffusion = [EquationPosterior(v, "diffusion", ("1",), np.ones(g.shape + (1,), dtype=bool), g[..., None], sigma2[j],
-                                       pip_threshold) for j, (v, g) in enumerate(zip(velocities, gamma_draws))]
-        diffusion_stats = _constant_stats(gamma_draws, np.asarray(stats.n))
+        diffusion = [EquationPosterior(v, "diffusion", ("1",), np.ones(g.shape + (1,), dtype=bool), g[..., None],
+                                       sigma2[j], pip_threshold) for j, (v, g) in enumerate(zip(velocities, gamma_draws))]
     checks = collinearity_checks(stats, drift)
     if warnings:
         checks["preprocessing"] = {"ok": False, "warnings": warnings}
@@ -144,11 +155,13 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
             "layout": "accelerometers",
             "measured_rates": [nominal.state_names[i] for i in xdot_index],
             "states": "anchored kinematic RTS",
-            "state_smoothing": {"states": states_info, "regression": info},
+            "state_smoothing": states_info,
+            "drift_rows": "accelerometer samples as Kramers-Moyal increments, regressors at the drift's prediction",
+            "errors_in_variables": None if errors is None else np.sqrt(np.diag(errors["extra"])).tolist(),
             "acceleration_noise_std": np.sqrt(sensor).tolist(),
             "diffusion_library": CONSTANT_DIFFUSION,
-            "diffusion_estimator": "the weak rows' white equation error, split from the accelerometers' noise by "
-                                   "restricted likelihood",
+            "diffusion_estimator": "the accelerations' white floor less the sensors' share (restricted likelihood "
+                                   "of the weak rows)",
             "diffusion_ml": (force * dt).tolist(),
             "records": int(R),
             "samples": int(R * N),
@@ -156,9 +169,53 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
             "stage_seconds": dict(stages.seconds),
         },
         checks=checks,
-        statistics={"drift": numpy_stats(stats), "diffusion": diffusion_stats},
+        statistics={"drift": numpy_stats(stats), "diffusion": _constant_stats(gamma_draws, np.asarray(stats.n))},
         history=updated_history(None, "output-only", rec, forget, equations, time.perf_counter() - start),
     )
+
+
+def increment_stats(nominal: LinearSecondOrder, lib: Library, dt: float, a, x) -> SuffStats:
+    """Kramers-Moyal statistics of accelerometer samples.
+
+    **Arguments:** ``nominal``, ``lib`` (no inputs); ``dt`` s; ``a (R, N, d)`` the
+    accelerometers' averages over each sample's interval; ``x (R, N, m)`` the states.
+
+    **Returns:** ``SuffStats`` batched over the velocity equations: sample ``k`` less the
+    nominal drift, regressed on the library, both at the state one Euler step of the nominal
+    drift predicts from sample ``k - 1`` (the regressors see no force of the interval's own)."""
+    d, m = nominal.d, nominal.m
+    vel = list(nominal.velocity_index)
+    R, N, _ = x.shape
+    zero = jnp.zeros((R, N - 1, nominal.n))
+    before = jnp.asarray(x[:, :-1])
+    pred = before + dt * jax.vmap(nominal.rate_batch)(before, zero)
+    y = (a[:, 1:] - np.asarray(jax.vmap(nominal.rate_batch)(pred, zero))[..., vel]).reshape(-1, d)
+    L = np.asarray(lib(pred.reshape(-1, m), zero.reshape(-1, nominal.n)))
+    return SuffStats(np.stack([L.T @ L] * d), (L.T @ y).T, (y * y).sum(axis=0), np.full(d, float(L.shape[0])))
+
+
+def _selected_fit(stats: SuffStats, index) -> np.ndarray:
+    """Least squares of the terms ``index [(equation, column)]`` from ``stats``, in its order."""
+    gram, xty = np.asarray(stats.gram), np.asarray(stats.xty)
+    out = np.zeros(len(index))
+    for e in sorted({e for e, _ in index}):
+        rows = [j for j, (ee, _) in enumerate(index) if ee == e]
+        ks = [index[j][1] for j in rows]
+        out[rows] = np.linalg.lstsq(gram[e][np.ix_(ks, ks)], xty[e][ks], rcond=None)[0]
+    return out
+
+
+def _errors_in_variables(nominal, lib, dt, a, x, coef, draws) -> dict | None:
+    """The spread of the selected terms' fit over draws ``(S, R, N, m)`` of the states'
+    estimation error, for :func:`~dtwin_jax.accelerometers.widened_draws` (no feedback gain):
+    None when nothing is selected or no draws."""
+    if coef is None or draws is None:
+        return None
+    index = [(e, int(k)) for e in range(coef.shape[0]) for k in np.flatnonzero(coef[e])]
+    if not index:
+        return None
+    fits = np.array([_selected_fit(increment_stats(nominal, lib, dt, a, x + draw), index) for draw in draws])
+    return {"index": index, "gain": np.eye(len(index)), "extra": np.atleast_2d(np.cov(fits.T))}
 
 
 def _split(info: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -166,8 +223,8 @@ def _split(info: dict) -> tuple[np.ndarray, np.ndarray]:
     (d,))``: the weak rows' covariance ``S_x(T) + lambda S_w`` is that of a sensor variance ``s``
     and a force variance ``f`` with ``f / s = lambda / T``, and ``s + f = T``. The floor is
     measured well (it is nearly all of the accelerations' variance in ambient vibration); the
-    noise scale of the rows is not (zoo-0006, 40 records: ``sigma2 lambda dt`` was 43% off with
-    the Ito correction's residual shift, 20% without; the split of the floor 0.3%)."""
+    rows' noise scale is not (zoo-0006, 40 records: ``sigma2 lambda dt`` 20-43% off, the split
+    of the floor 0.3%)."""
     floor = np.asarray(info["acceleration_noise_std"]) ** 2
     lam = np.asarray(info["equation_error_weight"])
     return floor * floor / (floor + lam), floor * lam / (floor + lam)
