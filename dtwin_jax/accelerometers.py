@@ -387,14 +387,14 @@ def sampler_selection(nominal: LinearSecondOrder, dt: float, a, lib, u, settings
     statistics of accelerations ``a (R, N, d)`` and inputs ``u (R, N, n)`` at states
     ``x (R, N, m)``."""
     from dtwin_jax.update.output_only_stats import first_pass_settings
-    from dtwin_jax.update.sampling import _sample_equations, posteriors
+    from dtwin_jax.update.sampling import sample_equations, posteriors
     from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats
 
     names = [nominal.state_names[i] for i in nominal.regressed_index]
 
     def select(x):
         stats, _ = accelerometer_weak_stats(nominal, lib, dt, a, u, x, interpolation=interpolation)
-        trace = _sample_equations(stats, first_pass_settings(settings), seed, False)
+        trace = sample_equations(stats, first_pass_settings(settings), seed, False)
         return np.stack([e.coefficients for e in posteriors(trace, names, "drift", lib.names, 0.5)])
 
     return select

@@ -40,7 +40,7 @@ from dtwin_jax.progress import Bar, tick
 from dtwin_jax.update.output_only import DIFFUSION_LIBRARY
 from dtwin_jax.update.output_only_stats import diffusion_statistics, output_only_drift_stats
 from dtwin_jax.update.result import SamplerSettings
-from dtwin_jax.update.sampling import _sampler_kwargs
+from dtwin_jax.update.sampling import sampler_kwargs
 
 __all__ = [
     "DEFAULT_LEVELS",
@@ -103,7 +103,7 @@ def _sample_and_summarise(keys, stats, truth, support, settings, method, pip_thr
     """Sample and summarise a batch of problems: ``keys (B,)``, ``stats`` with leading ``B``,
     ``truth``/``support (B, K)``. Only the ``(K,)`` summaries leave the loop body, so a
     problem's draws never coexist with another's (memory stays at one trace)."""
-    kwargs = _sampler_kwargs(settings)
+    kwargs = sampler_kwargs(settings)
 
     def one(key, st, tr, sup):
         trace = sampler.sample(key, st, chain_method=method, **kwargs)

@@ -34,9 +34,10 @@ from dtwin_jax.measurement import highest_natural_frequency_hz, savgol_coefficie
 from dtwin_jax.systems import LinearSecondOrder
 
 __all__ = ["weak_windows", "weak_window_fits", "window_quadrature", "weak_layout_supported", "weak_stats",
-           "weak_input_output_stats", "derivative_terms"]
+           "weak_input_output_stats", "derivative_terms", "reml_weight", "effective_share", "bump_functions",
+           "TEST_POWER"]
 
-_POWER = 6
+TEST_POWER = 6
 _STRIDES = 8  # windows per window width
 
 
@@ -63,7 +64,7 @@ def weak_windows(nominal: LinearSecondOrder, dt: float, num_samples: int) -> tup
     ``dt`` s; ``num_samples`` per record. The width is clipped to the record.
     """
     width = int(round(_period_samples(nominal, dt, num_samples)))
-    width = int(min(max(width, 2 * _POWER + 3), num_samples))
+    width = int(min(max(width, 2 * TEST_POWER + 3), num_samples))
     return width, max(1, width // _STRIDES)
 
 
@@ -100,7 +101,7 @@ def weak_layout_supported(nominal: LinearSecondOrder, x_index) -> bool:
     return all(i in tuple(x_index) for i in need)
 
 
-def _test_functions(width: int, dt: float, power: int):
+def bump_functions(width: int, dt: float, power: int):
     """``phi``, ``phi'``, ``phi''`` on one window's samples, scaled to unit integral, each
     times ``dt`` (quadrature weights); and the held input's exact weights."""
     s = np.arange(width) / (width - 1)
@@ -136,7 +137,7 @@ def _place(row: np.ndarray, starts: np.ndarray, num_samples: int) -> np.ndarray:
     return out
 
 
-def window_quadrature(num_samples: int, dt: float, width: int, stride: int, power: int = _POWER,
+def window_quadrature(num_samples: int, dt: float, width: int, stride: int, power: int = TEST_POWER,
                       held: bool = True, second: bool = False) -> tuple[np.ndarray, ...]:
     """Quadrature matrices of the test functions over one record.
 
@@ -151,7 +152,7 @@ def window_quadrature(num_samples: int, dt: float, width: int, stride: int, powe
     input's weights.
     """
     starts = _check_window(num_samples, width, stride, power)
-    phi, dphi, ddphi, held_w = _test_functions(width, dt, power)
+    phi, dphi, ddphi, held_w = bump_functions(width, dt, power)
     out = (_place(phi, starts, num_samples), _place(dphi, starts, num_samples),
            _place(held_w if held else phi, starts, num_samples))
     return (*out, _place(ddphi, starts, num_samples)) if second else out
@@ -225,7 +226,7 @@ def _operators(nominal: LinearSecondOrder, x_index):
     return derivative[idx] + np.einsum("is,srk->irk", J[idx], integral)
 
 
-def _reml_weight(L, Y, S_x, S_w) -> float:
+def reml_weight(L, Y, S_x, S_w) -> float:
     """The equation error's weight ``lambda`` in ``S_x + lambda S_w``: its posterior mean under
     the restricted likelihood of the whole library's least-squares residual and a log-uniform
     prior over ``_ERROR_GRID`` (relative to the traces). The mode would often sit at the
@@ -256,7 +257,7 @@ def _reml_weight(L, Y, S_x, S_w) -> float:
     return float(np.sum(w * lams) / np.sum(w))
 
 
-def _effective_share(L, Y, cov) -> float:
+def effective_share(L, Y, cov) -> float:
     """``n_eff / n`` of the whitened rows: arviz's ESS of the whole library's least-squares
     residual, summed over records, at most 1. ``L (R, W, K)``, ``Y (R, W)``, ``cov (W, W)``."""
     import arviz_stats as az
@@ -331,7 +332,7 @@ def _library_states(nominal, x, x_index, u, dt, hw, noise_var, interpolation):
 
 
 def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *, x_index=None,
-                            width: int | None = None, stride: int | None = None, power: int = _POWER,
+                            width: int | None = None, stride: int | None = None, power: int = TEST_POWER,
                             interpolation: str = "held", noise_var=None,
                             equation_error: bool = True, reference=None) -> tuple[sampler.SuffStats, dict]:
     """Weak-form statistics from measured states without rates.
@@ -407,7 +408,7 @@ def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *
         Ls = L / np.maximum(np.linalg.norm(L.reshape(-1, L.shape[-1]), axis=0), 1e-300)
         some = np.unique(np.linspace(0, R - 1, max(1, min(R, _REML_ROWS // L.shape[1]))).round().astype(int))
         for i in range(len(idx)):
-            weights[i] = _reml_weight(Ls[some], Y[some, :, i], S_x[i], S_w)
+            weights[i] = reml_weight(Ls[some], Y[some, :, i], S_x[i], S_w)
     cov = S_x + weights[:, None, None] * S_w[None]
     if reference is None:
         stats = weak_stats(jnp.asarray(Y), jnp.asarray(L), jnp.asarray(cov))
@@ -419,7 +420,7 @@ def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *
     scale = np.ones(len(idx))
     if equation_error:  # what whitening leaves correlated (coloured model error) counts once
         for i in range(len(idx)):
-            scale[i] = _effective_share(Ls, Y[..., i], cov[i])
+            scale[i] = effective_share(Ls, Y[..., i], cov[i])
         stats = sampler.SuffStats(stats.gram * scale[:, None, None], stats.xty * scale[:, None],
                                   stats.yty * scale, stats.n * scale)
     names = nominal.state_names

@@ -33,14 +33,14 @@ from dtwin_jax import sampler
 from dtwin_jax.denoise import auto_half_width, noise_std
 from dtwin_jax.library import Library
 from dtwin_jax.systems import LinearSecondOrder
-from dtwin_jax.weak_form import (_POWER, _effective_share, _reml_weight, _test_functions, weak_stats, weak_windows,
+from dtwin_jax.weak_form import (TEST_POWER, effective_share, reml_weight, bump_functions, weak_stats, weak_windows,
                                  window_quadrature)
 
 __all__ = ["accelerometer_filters", "accelerometer_weak_stats", "constant_columns", "equivalent_linear"]
 
 
 def accelerometer_filters(num_samples: int, dt: float, width: int, stride: int, held: bool,
-                          power: int = _POWER) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+                          power: int = TEST_POWER) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
     """The quadrature matrices of ``chi``, ``chi'``, ``chi''`` on one record, for smooth signals
     (trapezoid) and for a held input (exact over each held step).
 
@@ -51,7 +51,7 @@ def accelerometer_filters(num_samples: int, dt: float, width: int, stride: int, 
     Phi, dPhi, Phi_u, ddPhi = window_quadrature(num_samples, dt, width, stride, power, held=held, second=True)
     if not held:
         return (Phi, dPhi, ddPhi), (Phi, dPhi, ddPhi)
-    phi, dphi, _, _ = _test_functions(width, dt, power)
+    phi, dphi, _, _ = bump_functions(width, dt, power)
     starts = np.arange(0, num_samples - width + 1, stride)
 
     def place(row):
@@ -116,7 +116,7 @@ def equivalent_linear(nominal: LinearSecondOrder, dt: float, a, u, interpolation
 
     ``a (R, N, d)``, ``u (R, N, n)``; least squares over every window and record."""
     rows = _rows(nominal, dt, np.asarray(a, dtype=np.float64), np.asarray(u, dtype=np.float64), interpolation,
-                 None, _POWER)
+                 None, TEST_POWER)
     d = rows["Y"].shape[-1]
     X = np.concatenate([rows["Ia"], -rows["Da"]], axis=-1).reshape(-1, 2 * d)
     scale = np.maximum(np.linalg.norm(X, axis=0), 1e-300)
@@ -127,7 +127,7 @@ def equivalent_linear(nominal: LinearSecondOrder, dt: float, a, u, interpolation
 def accelerometer_weak_stats(nominal: LinearSecondOrder, lib: Library, dt: float, a, u, x, *,
                              interpolation: str = "held", state_draws=None, coef=None,
                              equation_error: bool = True, width: int | None = None,
-                             power: int = _POWER) -> tuple[sampler.SuffStats, dict]:
+                             power: int = TEST_POWER) -> tuple[sampler.SuffStats, dict]:
     """Weak-form statistics of the velocity equations from accelerations and force.
 
     **Arguments:**
@@ -178,12 +178,12 @@ def accelerometer_weak_stats(nominal: LinearSecondOrder, lib: Library, dt: float
     base = S_x + S_e
     if equation_error:
         for i in range(d):
-            weights[i] = _reml_weight(Ls, Y[..., i], base[i], S_w)
+            weights[i] = reml_weight(Ls, Y[..., i], base[i], S_w)
     cov = base + weights[:, None, None] * S_w[None]
     stats = weak_stats(jnp.asarray(Y), jnp.asarray(L), jnp.asarray(cov))
     if equation_error:
         for i in range(d):
-            scale[i] = _effective_share(Ls, Y[..., i], cov[i])
+            scale[i] = effective_share(Ls, Y[..., i], cov[i])
         stats = sampler.SuffStats(stats.gram * scale[:, None, None], stats.xty * scale[:, None],
                                   stats.yty * scale, stats.n * scale)
     info = {

@@ -1,4 +1,4 @@
-"""The regression of both frameworks on accelerometers alone: the weak rows at the anchored
+"""The input-output regression on accelerometers alone: the weak rows at the anchored
 states (:mod:`dtwin_jax.weak_form_accelerometers`) and the widening of what the anchor's
 loop feeds back into itself (:func:`dtwin_jax.accelerometers.state_feedback`)."""
 

@@ -53,7 +53,7 @@ from dtwin_jax.update.lifecycle import (
 from dtwin_jax.update.output_error import refine_output_error
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 from dtwin_jax.update.sampling import (
-    _sample_equations,
+    sample_equations,
     numpy_stats,
     posteriors,
     resolve_library,
@@ -222,7 +222,7 @@ def update_input_output(
             stats, n_eff = _autocorrelation_corrected(stats, nominal, lib, xs, rec.u, rates)
         stats = jax.block_until_ready(with_previous(stats, "drift", previous, forget))
     with stages("sampling"):
-        trace = jax.block_until_ready(_sample_equations(stats, settings, seed, progress))
+        trace = jax.block_until_ready(sample_equations(stats, settings, seed, progress))
         if feedback is not None:  # what the anchor's loop and the states' error add
             trace = trace._replace(theta=widened_draws(trace.theta, trace.gamma, feedback, seed))
     names = nominal.state_names

@@ -34,7 +34,7 @@ from dtwin_jax.update.output_only_stats import (
     first_pass_settings,
 )
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
-from dtwin_jax.update.sampling import _sample_equations, _sampler_kwargs, numpy_stats, posteriors
+from dtwin_jax.update.sampling import sample_equations, sampler_kwargs, numpy_stats, posteriors
 
 __all__ = ["update_output_only", "OUTPUT_ONLY_LIBRARY", "DIFFUSION_LIBRARY", "MARGIN_WARN"]
 
@@ -103,7 +103,7 @@ def update_output_only(
         # The drift sampler's programs depend on the library's size only: compiled beside
         # the drift statistics' program.
         for run in (first_pass_settings(settings), settings):
-            ahead.submit("drift", sampler.compile_chunked, lib.K, **_sampler_kwargs(run))
+            ahead.submit("drift", sampler.compile_chunked, lib.K, **sampler_kwargs(run))
         R, N, m = rec.x.shape
         dt = rec.dt
         with stages("drift statistics (Kramers-Moyal)"):
@@ -115,7 +115,7 @@ def update_output_only(
         names = nominal.state_names
         regressed = [names[i] for i in nominal.regressed_index]
         with stages("drift sampling"):
-            trace = jax.block_until_ready(_sample_equations(drift_stats, settings, seed, progress))
+            trace = jax.block_until_ready(sample_equations(drift_stats, settings, seed, progress))
             drift = posteriors(trace, regressed, "drift", lib.names, pip_threshold)
         with stages("diffusion likelihood (Kalman)"):
             # One step's mean drift: friction's sign averaged over half a step's Brownian increment.
@@ -132,7 +132,7 @@ def update_output_only(
             y = statespace.segments(rec.x)  # for the worker (diffusion_statistics cuts its own)
             vel = tuple(int(v) for v in nominal.velocity_index)
             ahead.submit("likelihood", _compile_likelihood, step, y, noise_var, vel)
-            ahead.submit("diffusion", sampler.compile_chunked, dlib.K, **_sampler_kwargs(settings), quick=True)
+            ahead.submit("diffusion", sampler.compile_chunked, dlib.K, **sampler_kwargs(settings), quick=True)
             ahead.submit("checks", _compile_checks, y, vel)
             fit = diffusion_statistics(step, dlib, rec.x, noise_var, ready=lambda: ahead.wait("likelihood"))
             check_columns(np.asarray(fit.columns), dlib.names)
@@ -143,7 +143,7 @@ def update_output_only(
             ahead.wait("diffusion")
             # A few terms: the chains run in ~0.1 s, and compiling their program fully
             # would take longer than running it unoptimized (the same indicators).
-            trace = _sample_equations(stats, settings, seed + 1, progress, quick=True)
+            trace = sample_equations(stats, settings, seed + 1, progress, quick=True)
             velocities = [names[i] for i in nominal.velocity_index]
             diffusion = posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
         # The drift's posterior-predictive check: one-step innovations of the velocities under
@@ -192,7 +192,7 @@ def drift_statistics(nominal: LinearSecondOrder, lib: Library, x, dt: float, noi
                      seed: int, ready=lambda: None) -> tuple[SuffStats, jax.Array]:
     """:func:`output_only_drift_stats` of records ``x (R, N, m)`` with ``key(seed)``, run as
     separate programs with the same result: both passes are one program, and the first
-    pass's short run is the drift sampling's program (:func:`_sample_equations`), compiled
+    pass's short run is the drift sampling's program (:func:`sample_equations`), compiled
     once. Returns ``(stats, margin (q,))``."""
     R, N, m = x.shape
 
@@ -206,7 +206,7 @@ def drift_statistics(nominal: LinearSecondOrder, lib: Library, x, dt: float, noi
     first, _ = one_pass(jnp.zeros((len(nominal.regressed_index), lib.K)), jnp.zeros(m), first_pass_rows(x))
     first_key = jax.random.split(jax.random.key(seed))[0]
     ready()
-    trace = _sample_equations(first, first_pass_settings(settings), seed, False, key=first_key)
+    trace = sample_equations(first, first_pass_settings(settings), seed, False, key=first_key)
     return one_pass(*first_pass_estimate(nominal, dt, noise_var, trace), R * (N - 2))
 
 

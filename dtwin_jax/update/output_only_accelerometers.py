@@ -47,7 +47,7 @@ from dtwin_jax.update.accelerometer_regression import without_constant_columns
 from dtwin_jax.update.lifecycle import check_repeat, updated_history
 from dtwin_jax.update.output_only_stats import first_pass_settings
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
-from dtwin_jax.update.sampling import _sample_equations, numpy_stats, posteriors
+from dtwin_jax.update.sampling import sample_equations, numpy_stats, posteriors
 from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats
 
 __all__ = ["CONSTANT_DIFFUSION", "SPLIT_PASSES", "update_from_accelerometers", "increment_stats"]
@@ -106,7 +106,7 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
     regressed = [nominal.state_names[i] for i in nominal.regressed_index]
 
     def select(xs):  # the anchor's terms: PIP > 1/2 in a short run on the increments
-        trace = _sample_equations(increment_stats(nominal, lib, dt, a, xs), first_pass_settings(settings), seed, False)
+        trace = sample_equations(increment_stats(nominal, lib, dt, a, xs), first_pass_settings(settings), seed, False)
         return np.stack([e.coefficients for e in posteriors(trace, regressed, "drift", lib.names, 0.5)])
 
     def refit(xs, index):  # the settled support's least squares on the increments
@@ -127,7 +127,7 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
     with stages("drift sampling"):
         draws, coef = states_info.pop("error_draws", None), states_info.pop("coefficients")
         stats = increment_stats(nominal, lib, dt, a, xs)
-        trace = jax.block_until_ready(_sample_equations(stats, settings, seed, progress))
+        trace = jax.block_until_ready(sample_equations(stats, settings, seed, progress))
         errors = _errors_in_variables(nominal, lib, dt, a, xs, coef, draws)
         if errors is not None:  # the states' estimation error, in the selected terms' draws
             trace = trace._replace(theta=widened_draws(trace.theta, trace.gamma, errors, seed))

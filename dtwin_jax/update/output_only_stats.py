@@ -24,7 +24,7 @@ from dtwin_jax.quick_compile import quick_jit
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.targets import equation_stats
 from dtwin_jax.update.result import SamplerSettings
-from dtwin_jax.update.sampling import _sampler_kwargs
+from dtwin_jax.update.sampling import sampler_kwargs
 
 __all__ = [
     "FIRST_PASS_ROWS",
@@ -109,7 +109,7 @@ def output_only_drift_stats(nominal: LinearSecondOrder, lib: Library, x, dt, noi
     """
     q = len(nominal.regressed_index)
     R, N, _ = x.shape
-    kwargs = _sampler_kwargs(first_pass_settings(settings))  # the update's first pass, as one call
+    kwargs = sampler_kwargs(first_pass_settings(settings))  # the update's first pass, as one call
 
     def one_pass(carry, inputs):
         key, rows = inputs

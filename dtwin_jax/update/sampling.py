@@ -16,7 +16,7 @@ from dtwin_jax.progress import Bar, tick
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.update.result import SamplerSettings
 
-__all__ = ["resolve_library", "posteriors", "numpy_stats"]
+__all__ = ["resolve_library", "posteriors", "numpy_stats", "sample_equations", "sampler_kwargs"]
 
 
 def resolve_library(library, nominal: LinearSecondOrder, num_inputs: int) -> Library:
@@ -41,7 +41,7 @@ def numpy_stats(stats: sampler.SuffStats) -> sampler.SuffStats:
     return sampler.SuffStats(*(np.asarray(a) for a in stats))
 
 
-def _sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed: int, progress: bool,
+def sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed: int, progress: bool,
                       key: jax.Array | None = None, quick: bool = False) -> sampler.GibbsTrace:
     """Draws ``(q, chains, draws, ...)`` (host arrays) for the batched statistics of every
     equation, each by :func:`sampler.sample_in_chunks` with its own key from ``seed`` (or
@@ -58,14 +58,14 @@ def _sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed:
     sweeps = q * settings.num_chains * -(-total // sampler.CHUNK) * sampler.CHUNK
     with Bar(progress, sweeps, "Gibbs sweeps"):
         traces = [
-            sampler.sample_in_chunks(keys[j], jax.tree.map(lambda a: a[j], stats), **_sampler_kwargs(settings),
+            sampler.sample_in_chunks(keys[j], jax.tree.map(lambda a: a[j], stats), **sampler_kwargs(settings),
                                      on_chunk=tick if progress else None, call=aot.call, quick=quick)
             for j in range(q)
         ]
     return sampler.GibbsTrace(*(np.stack(parts) for parts in zip(*traces)))
 
 
-def _sampler_kwargs(settings: SamplerSettings) -> dict:
+def sampler_kwargs(settings: SamplerSettings) -> dict:
     """``settings`` as keyword arguments of :func:`sampler.sample`."""
     return dict(
         num_draws=settings.num_draws,
