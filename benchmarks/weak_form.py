@@ -17,7 +17,7 @@ import numpy as np
 import dtwin_jax  # noqa: F401
 from dtwin_jax import systems
 from dtwin_jax.measurement import measure
-from dtwin_jax.twin import SamplerSettings, update_input_output
+from dtwin_jax import SamplerSettings, update_input_output
 
 
 def run(ex, library, level, seed, smoothing, settings):

@@ -7,7 +7,7 @@ import pytest
 from dtwin_jax import systems
 from dtwin_jax.errors import DataError
 from dtwin_jax.measurement import measure
-from dtwin_jax.twin import SamplerSettings, update_input_output
+from dtwin_jax import SamplerSettings, update_input_output
 from dtwin_jax.update.sampling import resolve_library
 from dtwin_jax.weak_form import derivative_terms, window_quadrature, weak_input_output_stats, weak_windows
 
