@@ -51,7 +51,8 @@ def main(horizon: float, draws: int):
     print("normalised RMSE of the mean, x1 x2 x3:", np.round(100 * simulation_error(pred["mean"], new["x"])["nrmse"], 2), "%")
     plot_degradation(fc, truth, "docs/degradation-example3.png")
     short = {k: np.asarray(v)[..., :3000, :] if k != "t" else np.asarray(v)[:3000] for k, v in pred.items() if k != "paths"}
-    plot_prediction(short, np.asarray(new["x"])[:3000], path="docs/prediction-example3.png")
+    plot_prediction(short, np.asarray(new["x"])[:3000], names=["x1", "x2", "x3 (damage)"], units=["m", "m/s", "-"],
+                    path="docs/prediction-example3.png")
     print("wrote docs/degradation-example3.png, docs/prediction-example3.png")
 
 

@@ -21,15 +21,19 @@ def _save(fig, path):
         from dtwin_jax.io import atomic_path
 
         with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=110, format="png")
+            fig.savefig(tmp, dpi=110, format="png", bbox_inches="tight")  # legends sit outside the axes
     return fig
+
+
+# Terms whose inclusion probability reaches this are named on PIP plots.
+PIP_LABEL = 0.1
 
 
 def plot_pip(result, path=None):
     """Stem plot of every equation's PIPs with the selection threshold; returns the figure.
 
-    ``result`` is an :class:`~dtwin_jax.update.UpdateResult`; selected terms are labelled.
-    Written to ``path`` (PNG) when given.
+    ``result`` is an :class:`~dtwin_jax.update.UpdateResult`; every term with PIP of at least
+    :data:`PIP_LABEL` is named (the selected ones in bold). Written to ``path`` (PNG) when given.
     """
     eqs = result.equations
     fig = _figure((10, 2.6 * len(eqs)))
@@ -39,13 +43,14 @@ def plot_pip(result, path=None):
         k = np.arange(pip.size)
         ax.stem(k, pip, basefmt="k-")
         ax.axhline(result.pip_threshold, color="r", ls="-.", lw=1)
-        for i in np.flatnonzero(eq.selected):
-            ax.annotate(eq.names[i], (i, pip[i]), textcoords="offset points", xytext=(4, -12), fontsize=8)
-        ax.set_ylim(0, 1.08)
+        for i in np.flatnonzero(pip >= PIP_LABEL):
+            ax.annotate(eq.names[i], (i, pip[i]), textcoords="offset points", xytext=(4, 2), fontsize=8,
+                        rotation=30, fontweight="bold" if eq.selected[i] else "normal")
+        ax.set_ylim(0, 1.25)
         ax.set_xlim(-1, pip.size)
-        ax.set_ylabel("PIP")
+        ax.set_ylabel("PIP (-)")
         ax.set_title(f"{eq.state} ({eq.kind}): {int(eq.selected.sum())} of {pip.size} terms selected", fontsize=10)
-    axes[-1, 0].set_xlabel("library term index")
+    axes[-1, 0].set_xlabel("library term (index)")
     fig.tight_layout()
     return _save(fig, path)
 
@@ -72,20 +77,22 @@ def plot_noise_sweep(sweep, path=None):
     ax_err.set_ylabel("relative error of posterior mean (%)")
     ax_err.set_title(f"(a) {sweep.example}, {sweep.framework}: coefficient error "
                      f"(median, min-max of {sweep.replicates})", fontsize=9)
-    ax_err.legend(fontsize=8)
+    ax_err.legend(fontsize=8, loc="upper left", bbox_to_anchor=(0.0, -0.18), ncol=3, frameon=False)
     ax_sup.set_ylim(-3, 103)
     ax_sup.set_xlabel("noise level (% of signal std)")
     ax_sup.set_ylabel("exact support recovered (% of replicates)")
     ax_sup.set_title("(b) support recovery", fontsize=9)
-    ax_sup.legend(fontsize=8)
+    ax_sup.legend(fontsize=8, loc="upper left", bbox_to_anchor=(0.0, -0.18), ncol=2, frameon=False)
     fig.tight_layout()
     return _save(fig, path)
 
 
-def plot_prediction(prediction, truth=None, *, states=None, names=None, path=None, label="truth"):
+def plot_prediction(prediction, truth=None, *, states=None, names=None, units=None, path=None, label="truth"):
     """Predicted mean and 95% band of each state against ``truth (N, m)`` (the paper's
     Figs. 7-9). ``prediction`` is the dict of :func:`dtwin_jax.prediction.predict`; ``states``
-    the indices to show (default all)."""
+    the indices to show (default all); ``names`` and ``units`` one string per state of the
+    model (default ``x1, x2, ...`` in "state units"). The measurement is black, the twin red
+    with its band, and the legend sits above the plots."""
     t = np.asarray(prediction["t"])
     mean, lower, upper = (np.asarray(prediction[k]) for k in ("mean", "lower", "upper"))
     states = range(mean.shape[1]) if states is None else states
@@ -93,12 +100,13 @@ def plot_prediction(prediction, truth=None, *, states=None, names=None, path=Non
     fig = _figure((10, 2.4 * len(states)))
     axes = fig.subplots(len(states), 1, squeeze=False, sharex=True)[:, 0]
     for ax, i in zip(axes, states):
-        ax.fill_between(t, lower[:, i], upper[:, i], color="tab:blue", alpha=0.3, lw=0, label="95% band")
+        ax.fill_between(t, lower[:, i], upper[:, i], color="tab:red", alpha=0.3, lw=0, label="twin 95% band")
         if truth is not None:
-            ax.plot(t, np.asarray(truth)[:, i], color="k", lw=0.8, label=label)
-        ax.plot(t, mean[:, i], color="tab:red", lw=0.8, ls="--", label="twin (mean)")
-        ax.set_ylabel(names[i] if names else f"x{i + 1}")
-    axes[0].legend(loc="upper right", fontsize=8, ncol=3)
+            ax.plot(t, np.asarray(truth)[:, i], color="k", lw=0.9, label=label)
+        ax.plot(t, mean[:, i], color="tab:red", lw=0.9, label="twin (mean)")
+        unit = units[i] if units else "state units"
+        ax.set_ylabel(f"{names[i] if names else f'x{i + 1}'} ({unit})")
+    axes[0].legend(loc="lower left", bbox_to_anchor=(0.0, 1.02), fontsize=8, ncol=3, frameon=False)
     axes[-1].set_xlabel("time (s)")
     fig.tight_layout()
     return _save(fig, path)
@@ -117,8 +125,8 @@ def plot_degradation(forecast, truth=None, path=None):
     ax_d.plot(t, forecast["damage_mean"], color="tab:red", ls="--", lw=1, label="twin (mean)")
     ax_d.axhline(forecast["critical"], color="gray", ls=":", lw=1, label="critical level")
     ax_d.set_xlabel("time (s)")
-    ax_d.set_ylabel("damage")
-    ax_d.legend(fontsize=8)
+    ax_d.set_ylabel("damage (state units)")
+    ax_d.legend(fontsize=8, loc="lower left", bbox_to_anchor=(0.0, 1.02), ncol=2, frameon=False)
     p = np.asarray(forecast["probability"])
     ax_p.fill_between(t, forecast["probability_lower"], forecast["probability_upper"], color="tab:orange",
                       alpha=0.3, lw=0, label="95% interval")
@@ -129,7 +137,7 @@ def plot_degradation(forecast, truth=None, path=None):
             ax_p.axvline(t[crossed[0]], color="k", lw=1, label="true crossing")
     ax_p.set_ylim(-0.02, 1.02)
     ax_p.set_xlabel("time (s)")
-    ax_p.set_ylabel("failure probability")
-    ax_p.legend(fontsize=8)
+    ax_p.set_ylabel("failure probability (-)")
+    ax_p.legend(fontsize=8, loc="lower left", bbox_to_anchor=(0.0, 1.02), ncol=2, frameon=False)
     fig.tight_layout()
     return _save(fig, path)

@@ -103,13 +103,13 @@ def figure(out: dict, path) -> None:
     """Measured against predicted on the arrow part, and the error over time."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(9, 5.5), layout="constrained")
+    fig = Figure(figsize=(11, 5.5), layout="constrained")
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
     t, y = out["t"], out["measured"]
     ax1.plot(t, y, color="0.6", lw=0.6, label="measured V2")
     ax1.plot(t, out["mean"], color="C0", lw=0.4, label="updated twin (mean)")
     ax1.set_ylabel("V2 (V)")
-    ax1.legend(loc="upper left", fontsize=8)
+    ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     ax1.set_title(f"Silverbox arrow, free run: twin {out['rms_mV']['twin']:.2f} mV RMS, "
                   f"identified linear model {out['rms_mV']['linear']:.1f} mV")
     ax2.plot(t, 1e3 * (out["linear"] - y), color="C3", lw=0.4, label="linear model error")
@@ -120,7 +120,7 @@ def figure(out: dict, path) -> None:
     ax2.set_ylim(-12, 12)
     ax2.set_xlabel("time (s)")
     ax2.set_ylabel("error (mV)")
-    ax2.legend(loc="lower left", fontsize=8, ncol=3)
+    ax2.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     fig.savefig(path, dpi=130)
 
 
