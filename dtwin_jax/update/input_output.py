@@ -90,31 +90,53 @@ def update_input_output(
 ) -> UpdateResult:
     """Discover the perturbation of ``nominal`` from input-output measurements.
 
-    ``t (N,)`` s; ``x (N, p)`` or ``(R, N, p)`` measured states, named ``x_names`` (default
-    all ``m`` in order); ``u (N, n)`` or ``(R, N, n)`` measured inputs, between samples as
-    ``interpolation`` (``"held"``, ``"linear"``, ``"bandlimited"``, or ``"auto"``, chosen
-    from the input's spectrum by :func:`dtwin_jax.systems.choose_interpolation`; the value
-    used is ``preprocessing["input_interpolation"]``, and ``"input_interpolation_chosen_by"``
-    says ``"spectrum"`` or ``"user"``); ``xdot`` measured rates of the states
-    ``xdot_names`` (accelerometers), or None. With every state measured and no rates the
-    regression is the weak form (:mod:`dtwin_jax.weak_form`, ``smoothing="weak"``: nothing
-    differentiated; ``"savgol"`` keeps the Savitzky-Golay derivative); with rates measured
-    they come with the kinematic smoother; with some states
-    unmeasured, or when the Savitzky-Golay design cannot be met (a few samples per period), or
-    with ``smoothing="statespace"``, every state and rate comes from the state-space smoother
-    of :mod:`dtwin_jax.estimate`. ``library`` is a spec (formats.md) or a :class:`Library`.
-    ``previous``: an earlier update of the same twin (same nominal model and library) whose
-    posterior is the prior of this one (its statistics, times ``forget``, are added to the
-    new window's); the result's history continues the previous one, and a window already in
-    it is refused unless ``allow_repeat`` (its data would count twice). ``refine``: refine the
-    selected terms' coefficients by output error on the same data
-    (:func:`dtwin_jax.update.refine_output_error`, from the denoised initial states, each
-    state weighed by its smoothing residual): a sharper twin for long free runs.
-    ``reference``: ``(N, r)`` or ``(R, N, r)`` the set-point of a closed loop, or None. The
-    estimator assumes that the equation error is white and independent of the columns; under
-    feedback an unmeasured force reaches the input, and that fails. Given, the reference is
-    the instrument of a two-stage least squares (:mod:`dtwin_jax.instruments`), on the weak
-    form's route (states measured without rates).
+    The route follows the sensors: with every state measured and no rates, the weak form
+    (:mod:`dtwin_jax.weak_form`: nothing differentiated); with rates measured, the kinematic
+    smoother; with accelerometers alone, the anchored states and their weak form
+    (:mod:`dtwin_jax.accelerometers`); with some states unmeasured, or a few samples per
+    period, the state-space smoother of :mod:`dtwin_jax.estimate`. The layout and route are
+    named in ``preprocessing["layout"]`` and ``["smoothing"]``.
+
+    **Arguments:**
+
+    - ``nominal``: the nominal model :class:`~dtwin_jax.systems.LinearSecondOrder`.
+    - ``t``: ``(N,)`` sample times, s, uniform.
+    - ``x``: ``(N, p)`` or ``(R, N, p)`` measured states (``R`` records), or None with
+      ``xdot`` (accelerometers alone).
+    - ``u``: ``(N, n)`` or ``(R, N, n)`` measured inputs (force units through ``B``).
+    - ``xdot``: measured rates of the states ``xdot_names`` (accelerometers: the rates of the
+      velocity states), same shapes as ``x``, or None.
+    - ``x_names``, ``xdot_names``: the states of the columns of ``x`` and ``xdot``, like
+      ``["x1"]`` (default: all ``m`` in order).
+    - ``interpolation``: the input between samples, ``"held"``, ``"linear"``,
+      ``"bandlimited"``, or ``"auto"`` (chosen from its spectrum by
+      :func:`dtwin_jax.systems.choose_interpolation`; reported as
+      ``preprocessing["input_interpolation"]`` and ``["input_interpolation_chosen_by"]``).
+    - ``library``: a spec (formats.md, like ``"poly:3,sign,input"``) or a :class:`Library`;
+      None: the default library, adapted to the data (columns the data cannot tell apart
+      dropped, with a warning).
+    - ``smoothing``: ``"auto"`` (the route above), ``"weak"``, ``"savgol"``,
+      ``"statespace"``, None (the states as measured) or an int Savitzky-Golay half width.
+    - ``pip_threshold``: inclusion probability above which a term is selected.
+    - ``settings``: :class:`SamplerSettings` (chains, draws, burn-in).
+    - ``seed``: the sampler's seed.
+    - ``progress``: show the stages and a bar of the sweeps.
+    - ``previous``: an earlier update of the same twin (same nominal model and library),
+      whose statistics, times ``forget``, are added to this window's: its posterior is the
+      prior; the history continues it.
+    - ``forget``: the previous statistics' weight, in (0, 1].
+    - ``allow_repeat``: take a window already in the history (its data would count twice).
+    - ``refine``: refine the selected terms' coefficients by output error on the same data
+      (:func:`dtwin_jax.update.refine_output_error`): a sharper twin for long free runs.
+    - ``reference``: ``(N,)``, ``(N, r)`` or ``(R, N, r)`` the set-point of a closed loop, or
+      None. The estimator assumes the equation error white and independent of the columns;
+      under feedback an unmeasured force reaches the input and that fails. Given, the
+      reference is the instrument of a two-stage least squares (:mod:`dtwin_jax.instruments`;
+      the weak form's route only).
+
+    **Returns:** an :class:`UpdateResult` of mode ``"input-output"``: one drift equation per
+    regressed state, coefficients in acceleration units (``M^-1`` applied), with the
+    preprocessing, checks and statistics of the update.
     """
     start = time.perf_counter()
     if interpolation != "auto":

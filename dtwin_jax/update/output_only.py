@@ -61,18 +61,30 @@ def update_output_only(
     forget: float = 1.0,
     allow_repeat: bool = False,
 ) -> UpdateResult:
-    """Discover drift perturbation and diffusion of ``nominal`` from measured states only.
+    """Discover the drift perturbation and the diffusion of ``nominal`` from its response
+    alone (no force measured: an Ito diffusion driven by white force).
 
-    ``t (N,)`` s, uniform; ``x (N, m)`` one record (a structure in service) or ``(R, N, m)``
-    an ensemble of independent records; both are pooled into one regression. ``library``
-    (drift, default :data:`OUTPUT_ONLY_LIBRARY`) and ``diffusion_library`` (default
-    :data:`DIFFUSION_LIBRARY`) are specs (formats.md) or :class:`Library`. The result holds
-    one ``drift`` equation per regressed state and one ``diffusion`` equation (the diagonal
-    ``Gamma_ii = (G G^T)_ii``, units of velocity^2 / s) per velocity. ``previous``,
-    ``forget`` and ``allow_repeat``: a re-update, as in :func:`update_input_output` (drift and diffusion).
-    ``x=None`` with ``xdot``, ``xdot_names``: accelerometers alone (ambient vibration), by
-    :func:`~dtwin_jax.update.output_only_accelerometers.update_from_accelerometers` (a constant
-    diffusion; no re-update yet). Measured rates beside ``x`` are refused in one line.
+    **Arguments:**
+
+    - ``nominal``: the nominal model :class:`~dtwin_jax.systems.LinearSecondOrder`.
+    - ``t``: ``(N,)`` sample times, s, uniform.
+    - ``x``: ``(N, m)`` one record (a structure in service) or ``(R, N, m)`` an ensemble of
+      independent records, every state measured; pooled into one regression. None with
+      ``xdot``: accelerometers alone (ambient vibration,
+      :func:`~dtwin_jax.update.output_only_accelerometers.update_from_accelerometers`: a
+      constant diffusion, no re-update yet).
+    - ``xdot``, ``xdot_names``: the accelerometers' samples and their states (the rates of
+      the velocity states), with ``x=None``; beside ``x`` they are refused in one line.
+    - ``library``: the drift library, a spec (formats.md) or :class:`Library` (default
+      :data:`OUTPUT_ONLY_LIBRARY`).
+    - ``diffusion_library``: the diffusion's, likewise (default :data:`DIFFUSION_LIBRARY`).
+    - ``pip_threshold``, ``settings``, ``seed``, ``progress``: as
+      :func:`~dtwin_jax.update.input_output.update_input_output`.
+    - ``previous``, ``forget``, ``allow_repeat``: a re-update, as there (drift and diffusion).
+
+    **Returns:** an :class:`UpdateResult` of mode ``"output-only"``: one ``drift`` equation
+    per regressed state (acceleration units) and one ``diffusion`` equation per velocity (the
+    diagonal ``Gamma_ii = (G G^T)_ii``, velocity^2 / s).
     """
     start = time.perf_counter()
     if x is None:  # accelerometers alone: ambient vibration
