@@ -50,7 +50,9 @@ def main(horizon: float, draws: int):
           f"there {p[crossing]:.2f}, 1/2 reached at {half:.2f} s, {p[-1]:.2f} at {horizon:g} s")
     print("normalised RMSE of the mean, x1 x2 x3:", np.round(100 * simulation_error(pred["mean"], new["x"])["nrmse"], 2), "%")
     plot_degradation(fc, truth, "docs/degradation-example3.png")
-    short = {k: np.asarray(v)[..., :3000, :] if k != "t" else np.asarray(v)[:3000] for k, v in pred.items() if k != "paths"}
+    # The first 3 s of every (N, m) array (and of t); per-state summaries as they are.
+    short = {k: np.asarray(v)[:3000] if k == "t" else np.asarray(v)[..., :3000, :] if np.ndim(v) >= 2 else v
+             for k, v in pred.items() if k != "paths"}
     plot_prediction(short, np.asarray(new["x"])[:3000], names=["x1", "x2", "x3 (damage)"], units=["m", "m/s", "-"],
                     path="docs/prediction-example3.png")
     print("wrote docs/degradation-example3.png, docs/prediction-example3.png")

@@ -118,11 +118,11 @@ def plot_degradation(forecast, truth=None, path=None):
     t = np.asarray(forecast["t"])
     fig = _figure((11, 4))
     ax_d, ax_p = fig.subplots(1, 2)
-    ax_d.fill_between(t, forecast["damage_lower"], forecast["damage_upper"], color="tab:blue", alpha=0.3, lw=0,
-                      label="95% band")
+    ax_d.fill_between(t, forecast["damage_lower"], forecast["damage_upper"], color="tab:red", alpha=0.3, lw=0,
+                      label="twin 95% band")
     if truth is not None:
         ax_d.plot(t, truth, color="k", lw=1, label="truth")
-    ax_d.plot(t, forecast["damage_mean"], color="tab:red", ls="--", lw=1, label="twin (mean)")
+    ax_d.plot(t, forecast["damage_mean"], color="tab:red", lw=1, label="twin (mean)")
     ax_d.axhline(forecast["critical"], color="gray", ls=":", lw=1, label="critical level")
     ax_d.set_xlabel("time (s)")
     ax_d.set_ylabel("damage (state units)")

@@ -100,21 +100,25 @@ def run(path, *, draws: int = 30, estimation=ESTIMATION, seed: int = 0, settings
 
 
 def figure(out: dict, path) -> None:
-    """Measured against predicted on the arrow part, and the error over time."""
+    """Measured against predicted on the last 0.1 s of the arrow, and the errors over all of it."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(11, 5.5), layout="constrained")
-    ax1, ax2 = fig.subplots(2, 1, sharex=True)
+    ax1, ax2 = fig.subplots(2, 1)
     t, y = out["t"], out["measured"]
-    ax1.plot(t, y, color="0.6", lw=0.6, label="measured V2")
-    ax1.plot(t, out["mean"], color="C0", lw=0.4, label="updated twin (mean)")
+    # A 0.1 s window near the end: over the whole arrow the two curves cannot be told apart.
+    zoom = (t >= t[-1] - 0.1)
+    ax1.plot(t[zoom], y[zoom], color="k", lw=1.2, label="measured V2")
+    ax1.plot(t[zoom], out["mean"][zoom], color="C0", lw=1.0, ls="--", label="updated twin (mean)")
+    ax1.plot(t[zoom], out["linear"][zoom], color="C3", lw=0.8, label="linear model")
     ax1.set_ylabel("V2 (V)")
+    ax1.set_xlabel("time (s), the last 0.1 s of the arrow")
     ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     ax1.set_title(f"Silverbox arrow, free run: twin {out['rms_mV']['twin']:.2f} mV RMS, "
                   f"identified linear model {out['rms_mV']['linear']:.1f} mV")
     ax2.plot(t, 1e3 * (out["linear"] - y), color="C3", lw=0.4, label="linear model error")
-    ax2.fill_between(t, 1e3 * (out["lower"] - y), 1e3 * (out["upper"] - y), color="C0", alpha=0.3,
-                     lw=0, label="twin 95% band - measured")
+    ax2.fill_between(t, 1e3 * (out["lower"] - y), 1e3 * (out["upper"] - y), color="C1", alpha=0.45,
+                     lw=0, label="twin 95% band - measured", zorder=3)  # over the twin's error
     ax2.plot(t, 1e3 * (out["mean"] - y), color="C0", lw=0.4, label="twin error")
     ax2.axvline(t[out["within_training_range_samples"] - 1], color="k", lw=0.6, ls="--")
     ax2.set_ylim(-12, 12)
