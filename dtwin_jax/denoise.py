@@ -23,7 +23,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from dtwin_jax import aot
+from dtwin_jax._compile import aot
 from dtwin_jax.kalman import kalman_filter, newton_log_variances, rts_smoother
 from dtwin_jax.linalg import mass_solve
 from dtwin_jax.measurement import (
@@ -128,7 +128,7 @@ def kinematic_smoother(
         half_width = auto_half_width(nominal, dt, x.shape[0])
     u = None if u is None else jnp.asarray(u)
     hw = int(half_width)
-    # A new process (the command line) reuses the traced program: see dtwin_jax.aot.
+    # A new process (the command line) reuses the traced program: see dtwin_jax._compile.aot.
     return aot.call("kinematic_smoother", lambda n, a, b, c: _kinematic_smoother(n, dt, a, b, c, hw),
                     (nominal, x, xdot, u), static=(float(dt), hw), unflatten=lambda leaves: leaves[0])
 

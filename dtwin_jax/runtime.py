@@ -19,7 +19,7 @@ def configure_runtime(cores: str | None = None, cache: str | None = None, platfo
 
     * A persistent XLA compilation cache (``cache``, else ``$DTWIN_JAX_CACHE``, default
       ``~/.cache/dtwin-jax/jax``; ``"off"`` disables it). A new process then skips XLA
-      compilation, and :mod:`dtwin_jax.aot` keeps the traced sampler, smoothers and
+      compilation, and :mod:`dtwin_jax._compile.aot` keeps the traced sampler, smoothers and
       output-only programs beside it, so it skips their tracing too: the output-only update
       of 300 records x 1 s, the first call in a new Python process, took 24 s with nothing
       cached and 5.8 s with the caches filled (one core; 16.8 and 5.5-5.7 s on both).
@@ -54,7 +54,7 @@ def configure_runtime(cores: str | None = None, cache: str | None = None, platfo
         done["platform"] = "cpu"
     cache = cache or os.environ.get("DTWIN_JAX_CACHE", os.path.join(Path.home(), ".cache", "dtwin-jax", "jax"))
     if cache != "off":
-        from dtwin_jax import aot
+        from dtwin_jax._compile import aot
 
         jax.config.update("jax_compilation_cache_dir", cache)
         aot.enable(os.path.join(cache, "dtwin-export"))

@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import cho_solve, solve_triangular
 
-from dtwin_jax.quick_compile import quick_jit
+from dtwin_jax._compile.quick_compile import quick_jit
 
 __all__ = [
     "SpikeSlabPrior",
@@ -616,9 +616,9 @@ def sample_in_chunks(
 
     Not jittable (use :func:`sample` inside ``jit``). ``on_chunk(sweeps)`` is called after
     every chunk with the number of sweeps it ran over all chains (a progress bar).
-    ``call(name, fn, args, static, unflatten)`` runs each program: :func:`dtwin_jax.aot.call`
+    ``call(name, fn, args, static, unflatten)`` runs each program: :func:`dtwin_jax._compile.aot.call`
     keeps them for new processes; the default calls ``fn(*args)``. ``quick``: the chunk
-    program compiled without LLVM's optimizations (:mod:`dtwin_jax.quick_compile`): the same
+    program compiled without LLVM's optimizations (:mod:`dtwin_jax._compile.quick_compile`): the same
     indicators, coefficients to rounding; for short runs, where its compilation outweighs
     its run. ``swap``: as in :func:`sample`.
     """
@@ -649,7 +649,7 @@ def compile_chunked(K: int, **settings) -> None:
     (its keyword arguments), so that a later call with float64 statistics compiles nothing:
     the set-up and keys run on a K-term identity problem (milliseconds), the chunk program is
     lowered and compiled, not run. For a worker thread while the caller builds the statistics
-    (:mod:`dtwin_jax.ahead`)."""
+    (:mod:`dtwin_jax._compile.ahead`)."""
     stats = SuffStats(*(jnp.asarray(a, jnp.float64) for a in (np.eye(K), np.zeros(K), 1.0, 2.0 * K)))
     key = jax.random.split(jax.random.key(0))[0]  # typed like the keys the callers split
     bound = inspect.signature(sample_in_chunks).bind(key, stats, **settings)

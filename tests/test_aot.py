@@ -1,4 +1,4 @@
-"""dtwin_jax.aot: a jitted function run through its exported program, exported once and
+"""dtwin_jax._compile.aot: a jitted function run through its exported program, exported once and
 loaded from disk afterwards, gives what the function gives; inside another trace, or where
 no process set-up enabled it (the library's default, and the rest of this suite), it is a
 plain call."""
@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import dtwin_jax  # noqa: F401  (float64)
-from dtwin_jax import aot, sampler, systems
+from dtwin_jax import sampler, systems
+from dtwin_jax._compile import aot
 from dtwin_jax.denoise import kinematic_smoother
 from dtwin_jax.measurement import measure
 

@@ -227,7 +227,7 @@ def test_noise_correction_margin_flags_noise_beyond_the_library():
 
 def test_later_stages_compile_ahead_in_a_worker_thread_and_nothing_compiles_twice(lowered_programs):
     """The diffusion likelihood, the residual checks and the samplers compile
-    in :class:`dtwin_jax.ahead.Ahead`'s thread while earlier stages run; the stages then find
+    in :class:`dtwin_jax._compile.ahead.Ahead`'s thread while earlier stages run; the stages then find
     them compiled (a miss would lower the same program again in the main thread)."""
     ex, t, x = _ensemble("example1", records=7, duration=0.301)  # shapes no other test compiles
     update_output_only(ex.system.nominal, t, x, library="poly:2", settings=FAST)

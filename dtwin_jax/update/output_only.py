@@ -13,8 +13,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import aot, kramers_moyal, sampler, statespace
-from dtwin_jax.ahead import Ahead
+from dtwin_jax import kramers_moyal, sampler, statespace
+from dtwin_jax._compile import aot
+from dtwin_jax._compile.ahead import Ahead
 from dtwin_jax.checks import residual_checks
 from dtwin_jax.collinearity import collinearity_checks
 from dtwin_jax.data import check_records, state_range

@@ -18,9 +18,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from dtwin_jax import aot, kramers_moyal, sampler, statespace
+from dtwin_jax import kramers_moyal, sampler, statespace
+from dtwin_jax._compile import aot
 from dtwin_jax.library import Library
-from dtwin_jax.quick_compile import quick_jit
+from dtwin_jax._compile.quick_compile import quick_jit
 from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.targets import equation_stats
 from dtwin_jax.update.result import SamplerSettings
@@ -188,7 +189,7 @@ def diffusion_statistics(
     maximum (:func:`statespace.diffusion_mle`), EM targets at it and their statistics on
     ``dlib`` weighted by :func:`_diffusion_stats`. ``window``: the pre-averaging window;
     None picks it from the data, which needs concrete values, so pass an int under ``jit``.
-    ``ready()`` is called before the likelihood's program runs (:class:`dtwin_jax.ahead.Ahead`).
+    ``ready()`` is called before the likelihood's program runs (:class:`dtwin_jax._compile.ahead.Ahead`).
     """
     nominal = step.nominal
     pilot, window = kramers_moyal.preaveraged_diffusion(

@@ -9,7 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import aot, sampler
+from dtwin_jax import sampler
+from dtwin_jax._compile import aot
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, parse_library
 from dtwin_jax.posterior import EquationPosterior
 from dtwin_jax.progress import Bar, tick
@@ -46,7 +47,7 @@ def sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed: 
     """Draws ``(q, chains, draws, ...)`` (host arrays) for the batched statistics of every
     equation, each by :func:`sampler.sample_in_chunks` with its own key from ``seed`` (or
     ``key``). Its programs depend on K and the chains only, so updates of other lengths, the
-    output-only first pass and new processes (:mod:`dtwin_jax.aot`) reuse them.
+    output-only first pass and new processes (:mod:`dtwin_jax._compile.aot`) reuse them.
     ``progress``: a bar of the sweeps, advanced after each chunk; ``quick``: see
     :func:`sampler.sample_in_chunks`."""
     # Strongly typed float64: a weakly typed count (from a Python scalar) and a re-update's

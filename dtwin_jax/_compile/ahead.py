@@ -25,7 +25,7 @@ class Ahead:
     ahead.wait("diffusion sampler")``: ``wait`` blocks until that job is done, so that the
     caller does not compile the same program a second time beside it. Leaving the block
     drops the jobs not started and waits for the running one. ``enabled=False``: no jobs
-    (a process running :mod:`dtwin_jax.aot`'s exported programs, whose stages would not use
+    (a process running :mod:`dtwin_jax._compile.aot`'s exported programs, whose stages would not use
     the programs compiled here)."""
 
     def __init__(self, enabled: bool = True) -> None:

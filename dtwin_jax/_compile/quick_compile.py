@@ -18,7 +18,7 @@ QUICK_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensiv
 
 def quick_jit(static_argnums=()):
     """``jax.jit`` with :data:`QUICK_COMPILE` for a call from Python; inside another trace
-    (an export by :mod:`dtwin_jax.aot`, a caller's jit or vmap) the plain function, which
+    (an export by :mod:`dtwin_jax._compile.aot`, a caller's jit or vmap) the plain function, which
     that trace's program holds (JAX takes compiler options on top-level programs only)."""
 
     def wrap(fun):
@@ -29,7 +29,7 @@ def quick_jit(static_argnums=()):
             traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree.leaves(args))
             return (fun if traced else compiled)(*args)
 
-        call.lower = compiled.lower  # to compile ahead of a call (dtwin_jax.ahead)
+        call.lower = compiled.lower  # to compile ahead of a call (dtwin_jax._compile.ahead)
         return call
 
     return wrap

@@ -75,7 +75,8 @@ def _source_digest() -> str:
     """A digest of the package's own source: an edited dtwin-jax never runs a program
     exported from the code before the edit (a version number would not change with it)."""
     h = hashlib.sha256()
-    for path in sorted(Path(__file__).parent.rglob("*.py")):
+    package = Path(__file__).resolve().parents[1]  # dtwin_jax/, this module in dtwin_jax/_compile/
+    for path in sorted(package.rglob("*.py")):
         h.update(path.read_bytes())
     return h.hexdigest()
 
