@@ -168,14 +168,14 @@ def _discover(args) -> int:
         if out:
             _check_writable(out)
     if args.save_twin:
-        from dtwin_jax.twin_folder import check_target
+        from dtwin_jax.io.twin_folder import check_target
 
         check_target(args.save_twin, force=args.force)  # before the long run: refuse a user's folder
     elif args.force:
         raise DataError("--force needs --save-twin")
     _check_early(args, _nominal_sizes(args.nominal), args.library)
     from dtwin_jax.io import load_measurements, load_nominal
-    from dtwin_jax.twin_folder import locked
+    from dtwin_jax.io.twin_folder import locked
 
     nominal = load_nominal(args.nominal)
     data = load_measurements(args.data)
@@ -188,7 +188,7 @@ def _discover(args) -> int:
         with _uninterrupted():
             _write_outputs(args, result)
             if args.save_twin:
-                from dtwin_jax.store import save_twin
+                from dtwin_jax.io.store import save_twin
 
                 save_twin(result, args.save_twin, replace=args.force)
                 print(f"saved the twin to {args.save_twin}/")
@@ -294,7 +294,7 @@ def _write_outputs(args, result) -> None:
 def _check_twin_early(twin) -> tuple[str | None, tuple | None]:
     """A saved twin's sizes checked before its modules are imported: its ``num_inputs``
     (:func:`~dtwin_jax.resources.check_num_inputs`). Returns its library spec and its nominal
-    ``(d, E, n)``, each None when unreadable (:func:`~dtwin_jax.store.load_twin` says why)."""
+    ``(d, E, n)``, each None when unreadable (:func:`~dtwin_jax.io.store.load_twin` says why)."""
     import json
     import re
 
@@ -324,7 +324,7 @@ def _update_saved(args) -> int:
     _check_threshold(args.pip_threshold)
     if not 0.0 <= args.forget <= 1.0:
         raise DataError(f"--forget must be in [0, 1], got {args.forget:g}")
-    from dtwin_jax.twin_folder import check_target, locked
+    from dtwin_jax.io.twin_folder import check_target, locked
 
     target = args.out_twin or args.twin
     # In place, the twin is replaced by its continuation; --out-twin must not be another twin
@@ -337,7 +337,7 @@ def _update_saved(args) -> int:
     library, sizes = _check_twin_early(args.twin)
     _check_early(args, sizes, library)
     from dtwin_jax.io import load_measurements
-    from dtwin_jax.store import load_twin, save_twin
+    from dtwin_jax.io.store import load_twin, save_twin
 
     with locked(args.twin, on_wait=_waiting(args.twin)):
         previous = load_twin(args.twin)
@@ -375,7 +375,7 @@ def _predict(args) -> int:
         resources.check_prediction(args.draws, samples, 2 * sizes[0] + sizes[1], option="--draws")
     from dtwin_jax.io import atomic_path, load_prediction_input
     from dtwin_jax.prediction import PredictionWarning, posterior_twins, predict
-    from dtwin_jax.store import load_twin
+    from dtwin_jax.io.store import load_twin
 
     result = load_twin(args.twin)
     new = load_prediction_input(args.input, result.nominal, needs_input=result.mode == "input-output")

@@ -12,7 +12,7 @@ import numpy as np
 
 from dtwin_jax import posterior_twins, predict, simulate, simulation_error, systems
 from dtwin_jax.prediction import degradation_forecast
-from dtwin_jax.store import load_twin, save_twin
+from dtwin_jax.io.store import load_twin, save_twin
 
 
 def check_input_output_prediction(ex, result, tol=0.05, draws=30):

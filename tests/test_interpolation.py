@@ -11,7 +11,7 @@ import pytest
 from dtwin_jax import systems
 from dtwin_jax.errors import DataError
 from dtwin_jax.measurement import measure
-from dtwin_jax.store import load_twin, save_twin
+from dtwin_jax.io.store import load_twin, save_twin
 from dtwin_jax.systems import (
     HIGH_BAND_THRESHOLD,
     choose_interpolation,

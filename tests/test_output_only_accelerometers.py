@@ -10,7 +10,7 @@ import pytest
 from dtwin_jax import SamplerSettings, systems, update_output_only, zoo
 from dtwin_jax.errors import DataError
 from dtwin_jax.prediction import posterior_twins
-from dtwin_jax.store import load_twin, save_twin
+from dtwin_jax.io.store import load_twin, save_twin
 from dtwin_jax.library import parse_library
 from dtwin_jax.update.output_only_accelerometers import increment_stats
 

@@ -19,7 +19,7 @@ from dtwin_jax.library import parse_library
 from dtwin_jax.measurement import measure
 from dtwin_jax.prediction import (PredictionWarning, UpdatedTwin, divergence_bounds, fixed_substeps, is_nonsmooth,
                                   posterior_twins, predict)
-from dtwin_jax.store import load_twin, save_twin
+from dtwin_jax.io.store import load_twin, save_twin
 from dtwin_jax.systems import LinearSecondOrder
 
 SHORT = ["--chains", "2", "--draws", "300", "--burn-in", "150", "--quiet"]

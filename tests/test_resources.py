@@ -145,7 +145,7 @@ def test_parse_library_refuses_a_huge_library_before_building_it(spec, m, n, mes
 def test_api_entry_points_check_before_allocating(folder, monkeypatch):
     from dtwin_jax import LinearSecondOrder
     from dtwin_jax.prediction import posterior_twins, predict
-    from dtwin_jax.store import load_twin
+    from dtwin_jax.io.store import load_twin
     from dtwin_jax.update import SamplerSettings, update_input_output, update_output_only
 
     with pytest.raises(DataError, match="extra_states 100000000 needs about .* for the nominal model"):

@@ -17,11 +17,11 @@ import h5py
 import numpy as np
 import pytest
 
-from dtwin_jax import store
+from dtwin_jax.io import store
 from dtwin_jax.cli import main
 from dtwin_jax.errors import DataError
 from dtwin_jax.io import write_nominal
-from dtwin_jax.store import load_twin, locked, save_twin
+from dtwin_jax.io.store import load_twin, locked, save_twin
 from test_lifecycle import _window
 
 TINY = ["--chains", "2", "--draws", "200", "--burn-in", "100", "--quiet"]
@@ -292,7 +292,7 @@ def test_two_update_processes_keep_both_windows(saved, tmp_path):
 
 _UPDATER = """
 import dataclasses, sys
-from dtwin_jax.store import load_twin, locked, save_twin
+from dtwin_jax.io.store import load_twin, locked, save_twin
 twin, name = sys.argv[1], sys.argv[2]
 print("ready", flush=True)
 sys.stdin.readline()  # both processes start their rounds together
@@ -347,7 +347,7 @@ def test_a_save_killed_at_any_step_leaves_a_twin_and_no_leftovers(saved, tmp_pat
 
 _SAVER = """
 import sys
-from dtwin_jax.store import load_twin, save_twin
+from dtwin_jax.io.store import load_twin, save_twin
 result = load_twin(sys.argv[1])
 save_twin(result, sys.argv[1])  # the first save imports arviz and h5netcdf
 print("ready", flush=True)

@@ -12,7 +12,7 @@ Framework 1, :func:`update_input_output` (``input_output``): states, inputs and 
 measured. Framework 2, :func:`update_output_only` (``output_only``): states only; drift by
 Kramers-Moyal targets, then diffusion by the Kalman likelihood (``output_only_stats``).
 Both return an :class:`UpdateResult` (``result``), which a later update takes as
-``previous`` (``lifecycle``) and :mod:`dtwin_jax.store` saves and loads.
+``previous`` (``lifecycle``) and :mod:`dtwin_jax.io.store` saves and loads.
 """
 
 import importlib

@@ -33,9 +33,9 @@ Guarantees (a twin travels between users and is untrusted):
   and the command line holds it through read, update and write, so concurrent updates
   queue instead of losing one.
 * Checksummed and checked: :func:`load_twin` verifies every file's SHA-256 against the
-  manifest, then reads it defensively (:mod:`dtwin_jax.twin_files`: no netCDF reader, no
+  manifest, then reads it defensively (:mod:`dtwin_jax.io.twin_files`: no netCDF reader, no
   pickles, every field, shape and dtype checked); any failure is one line naming the file.
-  (:mod:`dtwin_jax.twin_folder` holds the lock, the names a save may remove and the
+  (:mod:`dtwin_jax.io.twin_folder` holds the lock, the names a save may remove and the
   destination check.)
 * Files get the user's umask (0644 and 0755 under umask 022).
 
@@ -54,13 +54,14 @@ from pathlib import Path
 
 import numpy as np
 
-from dtwin_jax import sampler, twin_files, twin_folder
+from dtwin_jax import sampler
+from dtwin_jax.io import twin_files, twin_folder
 from dtwin_jax.errors import DataError
 from dtwin_jax.io import json_safe, load_nominal, write_nominal
 from dtwin_jax.library import parse_library
 from dtwin_jax.posterior import EquationPosterior
 from dtwin_jax.resources import check_num_inputs
-from dtwin_jax.twin_folder import CONTENT, FORMAT, V1_FILES, check_target, locked
+from dtwin_jax.io.twin_folder import CONTENT, FORMAT, V1_FILES, check_target, locked
 
 __all__ = ["FORMAT", "VERSION", "save_twin", "load_twin", "locked", "check_target", "twin_revision"]
 

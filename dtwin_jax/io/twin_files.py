@@ -1,4 +1,4 @@
-"""Defensive readers of a twin's files (:mod:`dtwin_jax.store`).
+"""Defensive readers of a twin's files (:mod:`dtwin_jax.io.store`).
 
 A twin folder travels between users and is untrusted: every file is checked against the
 header before use, and every failure is a one-line :class:`DataError` naming the file.

@@ -1,4 +1,4 @@
-"""A twin folder's layout on disk (:mod:`dtwin_jax.store`): its lock, the names a save
+"""A twin folder's layout on disk (:mod:`dtwin_jax.io.store`): its lock, the names a save
 writes (and may therefore remove), the check of a destination before any work, and reads
 that follow no link and stop at 1 GiB."""
 
