@@ -35,8 +35,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import dtwin_jax  # noqa: F401  (float64)
-from dtwin_jax import SamplerSettings, sampler, systems, update_input_output, zoo
+from dtwin_jax import SamplerSettings, sampler, update_input_output
 from dtwin_jax.measurement import measure
+from dtwin_jax.models import systems, zoo
 
 sys.path.insert(0, str(Path(__file__).parent))
 from zoo import score

@@ -25,8 +25,9 @@ import time
 import jax
 import numpy as np
 
-from dtwin_jax import SamplerSettings, systems, update_output_only
+from dtwin_jax import SamplerSettings, update_output_only
 from dtwin_jax.measurement import add_noise
+from dtwin_jax.models import systems
 
 
 def main(name: str = "example1", records: int = 100, default_settings: bool = False, library: str | None = None) -> None:

@@ -16,10 +16,17 @@ import jax
 import numpy as np
 
 import dtwin_jax  # noqa: F401  (float64)
-from dtwin_jax import SamplerSettings, posterior_twins, predict, simulation_error, systems, update_input_output
+from dtwin_jax import (
+    SamplerSettings,
+    posterior_twins,
+    predict,
+    simulation_error,
+    update_input_output,
+)
 from dtwin_jax.measurement import measure
+from dtwin_jax.models import systems
+from dtwin_jax.models.prediction import degradation_forecast
 from dtwin_jax.plots import plot_degradation, plot_prediction
-from dtwin_jax.prediction import degradation_forecast
 
 
 def main(horizon: float, draws: int):

@@ -38,7 +38,8 @@ def _timed(cmd, env) -> float:
 def _data(folder: Path) -> Path:
     import jax
 
-    from dtwin_jax import measure, systems
+    from dtwin_jax import measure
+    from dtwin_jax.models import systems
 
     ex = systems.example1()
     sim = systems.simulate_example(ex, jax.random.key(0))

@@ -14,8 +14,9 @@ import time
 import jax
 import numpy as np
 
-from dtwin_jax import SamplerSettings, kramers_moyal, statespace, systems, update_output_only
+from dtwin_jax import SamplerSettings, kramers_moyal, statespace, update_output_only
 from dtwin_jax.measurement import add_noise
+from dtwin_jax.models import systems
 
 
 def run(name, level, records, duration, seed, settings):

@@ -1,5 +1,5 @@
 """A peer benchmark: dtwin-jax's default route against pysindy (STLSQ, ensemble STLSQ, SBR,
-weak-form STLSQ) on the zoo members (`dtwin_jax.zoo`), same data, same candidate terms.
+weak-form STLSQ) on the zoo members (`dtwin_jax.models.zoo`), same data, same candidate terms.
 
     pip install -e .[peers]        # pysindy>=2.1
     python benchmarks/peers.py --members 24 --seed 0 --duration 2 \\
@@ -71,12 +71,13 @@ except ImportError:
 
 import jax
 import numpy as np
+import zoo as zoo_benchmark  # benchmarks/zoo.py: _layout, score
 
 import dtwin_jax  # noqa: F401  (float64)
-import zoo as zoo_benchmark  # benchmarks/zoo.py: _layout, score
-from dtwin_jax import SamplerSettings, systems, update_input_output, zoo
+from dtwin_jax import SamplerSettings, update_input_output
 from dtwin_jax.library import parse_library
 from dtwin_jax.measurement import measure
+from dtwin_jax.models import systems, zoo
 
 LAYOUTS = ("accelerations", "states")
 METHODS = ("dtwin-jax", "STLSQ", "ensemble STLSQ", "SBR", "weak STLSQ")

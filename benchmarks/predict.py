@@ -22,11 +22,11 @@ from dtwin_jax import (
     posterior_twins,
     predict,
     simulation_error,
-    systems,
     update_input_output,
     update_output_only,
 )
 from dtwin_jax.measurement import add_noise, measure
+from dtwin_jax.models import systems
 
 
 def main(name: str, mode: str):

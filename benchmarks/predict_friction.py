@@ -21,10 +21,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import dtwin_jax  # noqa: F401  (float64)
-from dtwin_jax import systems
 from dtwin_jax.library import parse_library
-from dtwin_jax.prediction import UpdatedTwin, fixed_substeps, predict
-from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.models import systems
+from dtwin_jax.models.prediction import UpdatedTwin, fixed_substeps, predict
+from dtwin_jax.models.systems import LinearSecondOrder
 
 
 def main(draws: int = 100) -> None:

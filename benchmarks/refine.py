@@ -1,4 +1,4 @@
-"""Output-error refinement on random zoo members (`dtwin_jax.zoo`), input-output.
+"""Output-error refinement on random zoo members (`dtwin_jax.models.zoo`), input-output.
 
     python benchmarks/refine.py --members 20 --seed 0
 
@@ -15,8 +15,9 @@ import jax
 import numpy as np
 
 import dtwin_jax  # noqa: F401  (float64)
-from dtwin_jax import SamplerSettings, simulate, simulation_error, systems, update_input_output, zoo
+from dtwin_jax import SamplerSettings, simulate, simulation_error, update_input_output
 from dtwin_jax.measurement import measure
+from dtwin_jax.models import systems, zoo
 
 
 def run_member(member, settings):

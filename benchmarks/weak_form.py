@@ -15,9 +15,9 @@ import jax
 import numpy as np
 
 import dtwin_jax  # noqa: F401
-from dtwin_jax import systems
-from dtwin_jax.measurement import measure
 from dtwin_jax import SamplerSettings, update_input_output
+from dtwin_jax.measurement import measure
+from dtwin_jax.models import systems
 
 
 def run(ex, library, level, seed, smoothing, settings):

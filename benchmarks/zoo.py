@@ -1,4 +1,4 @@
-"""The updates on the zoo of random perturbed systems (`dtwin_jax.zoo`), scored by family.
+"""The updates on the zoo of random perturbed systems (`dtwin_jax.models.zoo`), scored by family.
 
     python benchmarks/zoo.py --framework input-output|output-only --members 40 --seed 0
         [--layout accelerations|states|displacement|accelerometers] [--duration 2]
@@ -26,9 +26,9 @@ import jax
 import numpy as np
 
 import dtwin_jax  # noqa: F401  (float64)
-from dtwin_jax import SamplerSettings, systems, update_input_output, update_output_only, zoo
+from dtwin_jax import SamplerSettings, update_input_output, update_output_only
 from dtwin_jax.measurement import add_noise, measure
-
+from dtwin_jax.models import systems, zoo
 
 LAYOUTS = ("accelerations", "states", "displacement", "accelerometers")
 

@@ -21,14 +21,14 @@ _PUBLIC = {
     "parse_library": "library",
     "DataError": "errors",
     "measure": "measurement",
-    "LinearSecondOrder": "systems",
-    "PerturbedSystem": "systems",
-    "simulate": "systems",
-    "UpdatedTwin": "prediction",
-    "posterior_twins": "prediction",
-    "predict": "prediction",
-    "simulation_error": "prediction",
-    "with_model_error": "prediction",
+    "LinearSecondOrder": "models.systems",
+    "PerturbedSystem": "models.systems",
+    "simulate": "models.systems",
+    "UpdatedTwin": "models.prediction",
+    "posterior_twins": "models.prediction",
+    "predict": "models.prediction",
+    "simulation_error": "models.prediction",
+    "with_model_error": "models.prediction",
     "SamplerSettings": "update",
     "UpdateResult": "update",
     "refine_output_error": "update",
@@ -36,7 +36,7 @@ _PUBLIC = {
     "update_output_only": "update",
     "configure_runtime": "runtime",
 }
-_SUBMODULES = ("sampler", "systems")
+_SUBMODULES = ("sampler",)
 
 __all__ = sorted([*_PUBLIC, *_SUBMODULES])
 __version__ = "0.1.0"

@@ -43,7 +43,7 @@ from scipy.linalg import sqrtm
 from dtwin_jax.denoise import auto_half_width, noise_std
 from dtwin_jax.errors import DataError
 from dtwin_jax.kalman import kalman_filter, rts_smoother
-from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.models.systems import LinearSecondOrder
 
 __all__ = ["CROSSOVER", "ERROR_DRAWS", "MAX_FEEDBACK", "accelerometer_layout", "check_accelerometer_layout",
            "sampler_selection", "anchored_smoother", "accelerometer_states", "state_feedback",
@@ -111,7 +111,7 @@ def accelerometer_layout(nominal: LinearSecondOrder, xdot, xdot_names, u, refine
     ``(x (..., N, 0), x_names [])``. Raises a one-line :class:`DataError` naming the missing
     measurement (see :func:`check_accelerometer_layout`)."""
     from dtwin_jax.estimate import measured_index
-    from dtwin_jax.systems import real_array
+    from dtwin_jax.models.systems import real_array
 
     if xdot is None:
         raise DataError("no measurement of the states: give 'x' (states) or 'xdot' (accelerations)")
@@ -387,7 +387,7 @@ def sampler_selection(nominal: LinearSecondOrder, dt: float, a, lib, u, settings
     statistics of accelerations ``a (R, N, d)`` and inputs ``u (R, N, n)`` at states
     ``x (R, N, m)``."""
     from dtwin_jax.update.output_only_stats import first_pass_settings
-    from dtwin_jax.update.sampling import sample_equations, posteriors
+    from dtwin_jax.update.sampling import posteriors, sample_equations
     from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats
 
     names = [nominal.state_names[i] for i in nominal.regressed_index]

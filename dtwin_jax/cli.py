@@ -374,8 +374,8 @@ def _predict(args) -> int:
     if sizes and samples:
         resources.check_prediction(args.draws, samples, 2 * sizes[0] + sizes[1], option="--draws")
     from dtwin_jax.io import atomic_path, load_prediction_input
-    from dtwin_jax.prediction import PredictionWarning, posterior_twins, predict
     from dtwin_jax.io.store import load_twin
+    from dtwin_jax.models.prediction import PredictionWarning, posterior_twins, predict
 
     result = load_twin(args.twin)
     new = load_prediction_input(args.input, result.nominal, needs_input=result.mode == "input-output")
@@ -407,8 +407,8 @@ def _predict(args) -> int:
 def _demo(args) -> int:
     import jax
 
-    from dtwin_jax import systems
     from dtwin_jax.measurement import measure
+    from dtwin_jax.models import systems
     from dtwin_jax.update import update_input_output
 
     _check_threshold(args.pip_threshold)
@@ -440,8 +440,8 @@ def _demo_output_only(args, ex, say) -> int:
     import jax
     import numpy as np
 
-    from dtwin_jax import systems
     from dtwin_jax.measurement import add_noise
+    from dtwin_jax.models import systems
     from dtwin_jax.update import update_output_only
 
     ex = ex.for_output_only()

@@ -7,7 +7,7 @@ from typing import NamedTuple
 import numpy as np
 
 from dtwin_jax.errors import DataError
-from dtwin_jax.systems import LinearSecondOrder, real_array
+from dtwin_jax.models.systems import LinearSecondOrder, real_array
 
 __all__ = ["Records", "check_records", "state_range", "uniform_times"]
 
@@ -131,7 +131,7 @@ def check_records(
 def state_range(x, previous=None) -> list[list[float]]:
     """`[[lo, hi], ...]`, one per state: the smallest and largest value of `x (..., m)`, and
     of the `previous` update's range when given (a re-update's twin has seen both), saved
-    with the twin to bound its predictions (:func:`dtwin_jax.prediction.divergence_bounds`)."""
+    with the twin to bound its predictions (:func:`dtwin_jax.models.prediction.divergence_bounds`)."""
     x = np.asarray(x, dtype=float).reshape(-1, np.shape(x)[-1])
     lo, hi = np.nanmin(x, axis=0), np.nanmax(x, axis=0)
     old = None if previous is None else previous.preprocessing.get("state_range")

@@ -32,7 +32,7 @@ from dtwin_jax.measurement import (
     smooth,
     smoothing_half_width,
 )
-from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.models.systems import LinearSecondOrder
 
 __all__ = ["savgol_design_ok", "auto_half_width", "noise_std", "savgol_states", "kinematic_smoother", "input_noise_variance"]
 

@@ -33,7 +33,7 @@ import numpy as np
 from dtwin_jax.errors import DataError
 from dtwin_jax.kalman import kalman_filter, newton_log_variances, rts_smoother
 from dtwin_jax.linalg import expm, mass_solve
-from dtwin_jax.systems import (
+from dtwin_jax.models.systems import (
     UPSAMPLE,
     LinearSecondOrder,
     check_interpolation,
@@ -389,7 +389,7 @@ def identify_linear(
     - `xdot`, `xdot_names`: measured rates, or None.
     - `interpolation`: the input between samples, `"held"`, `"linear"`, `"bandlimited"`, or
       `"auto"`: held or band-limited from the input's spectrum
-      (:func:`dtwin_jax.systems.choose_interpolation`).
+      (:func:`dtwin_jax.models.systems.choose_interpolation`).
     - `max_iterations`, `rtol`: the rounds' limit and stopping tolerance.
     - `fixed`: known parameters, `{name: value}` with names among `M (d, d)`, `C (d, d)`,
       `K (d, d)`, `B (d, n)`, `F0 (d,)` (a scalar `M`, `C`, `K` is that times the

@@ -43,7 +43,7 @@ import numpy as np
 from dtwin_jax import sampler
 from dtwin_jax.library import Library, monomials
 from dtwin_jax.linalg import expm, mass_solve
-from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.models.systems import LinearSecondOrder
 
 __all__ = [
     "state_matrix",

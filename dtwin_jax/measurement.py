@@ -13,7 +13,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from dtwin_jax.errors import DataError
-from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.models.systems import LinearSecondOrder
 
 __all__ = [
     "add_noise",

@@ -4,7 +4,7 @@ A posterior over the library's coefficients carries the parameter uncertainty on
 the library misses (and what the posterior mean gets wrong over a long free run) shows as a
 free-run error on the training records themselves. Its standard deviation per measured
 state is saved with the twin and added to every prediction's band
-(:func:`dtwin_jax.prediction.with_model_error`), unless ``predict(..., model_error=False)``.
+(:func:`dtwin_jax.models.prediction.with_model_error`), unless ``predict(..., model_error=False)``.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ _TRANSIENT = 0.05
 
 
 def training_model_error(twin, t, x, u, x_index, x0) -> tuple[list[float] | None, str | None]:
-    """Free-run RMS error of ``twin`` (an :class:`~dtwin_jax.prediction.UpdatedTwin`,
+    """Free-run RMS error of ``twin`` (an :class:`~dtwin_jax.models.prediction.UpdatedTwin`,
     unbatched) on its training records.
 
     **Arguments:** ``t (N,)`` s, ``x (R, N, p)`` the measured states ``x_index``, ``u (R, N,
@@ -33,7 +33,7 @@ def training_model_error(twin, t, x, u, x_index, x0) -> tuple[list[float] | None
     **Returns:** ``(sd (m,)`` in each state's units, 0 for a state not measured``, None)``,
     or ``(None, why)`` when the free run diverges or fails.
     """
-    from dtwin_jax.prediction import PredictionWarning, predict
+    from dtwin_jax.models.prediction import PredictionWarning, predict
 
     R, N, _ = x.shape
     stacked = eqx.tree_at(lambda s: s.coefficients, twin, twin.coefficients[None])

@@ -89,7 +89,7 @@ def plot_noise_sweep(sweep, path=None):
 
 def plot_prediction(prediction, truth=None, *, states=None, names=None, units=None, path=None, label="truth"):
     """Predicted mean and 95% band of each state against ``truth (N, m)`` (the paper's
-    Figs. 7-9). ``prediction`` is the dict of :func:`dtwin_jax.prediction.predict`; ``states``
+    Figs. 7-9). ``prediction`` is the dict of :func:`dtwin_jax.models.prediction.predict`; ``states``
     the indices to show (default all); ``names`` and ``units`` one string per state of the
     model (default ``x1, x2, ...`` in "state units"). The measurement is black, the twin red
     with its band, and the legend sits above the plots."""
@@ -114,7 +114,7 @@ def plot_prediction(prediction, truth=None, *, states=None, names=None, units=No
 
 def plot_degradation(forecast, truth=None, path=None):
     """Damage forecast (mean, 95% band, truth) and the failure-probability curve with its
-    95% interval; ``forecast`` from :func:`dtwin_jax.prediction.degradation_forecast`."""
+    95% interval; ``forecast`` from :func:`dtwin_jax.models.prediction.degradation_forecast`."""
     t = np.asarray(forecast["t"])
     fig = _figure((11, 4))
     ax_d, ax_p = fig.subplots(1, 2)

@@ -33,8 +33,7 @@ import numpy as np
 
 from dtwin_jax.kalman import Filtered, kalman_filter, rts_smoother
 from dtwin_jax.library import Library, parse_library
-from dtwin_jax.systems import LinearSecondOrder
-
+from dtwin_jax.models.systems import LinearSecondOrder
 
 __all__ = [
     "DriftStep",

@@ -32,13 +32,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import kramers_moyal, measurement, sampler, statespace, systems, targets
+from dtwin_jax import kramers_moyal, measurement, sampler, statespace, targets
 from dtwin_jax.denoise import auto_half_width
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library, parse_library
+from dtwin_jax.models import systems
 from dtwin_jax.progress import Bar, tick
 from dtwin_jax.update.output_only import DIFFUSION_LIBRARY
-from dtwin_jax.update.output_only_stats import diffusion_statistics, output_only_drift_stats
+from dtwin_jax.update.output_only_stats import (
+    diffusion_statistics,
+    output_only_drift_stats,
+)
 from dtwin_jax.update.result import SamplerSettings
 from dtwin_jax.update.sampling import sampler_kwargs
 

@@ -26,12 +26,21 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import sampler
-from dtwin_jax.denoise import auto_half_width, noise_std, savgol_design_ok, savgol_states
+from dtwin_jax.denoise import (
+    auto_half_width,
+    noise_std,
+    savgol_design_ok,
+    savgol_states,
+)
 from dtwin_jax.errors import DataError
 from dtwin_jax.instruments import instrumented_stats, reference_fit
 from dtwin_jax.library import Library
-from dtwin_jax.measurement import highest_natural_frequency_hz, savgol_coefficients, smooth
-from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.measurement import (
+    highest_natural_frequency_hz,
+    savgol_coefficients,
+    smooth,
+)
+from dtwin_jax.models.systems import LinearSecondOrder
 
 __all__ = ["weak_windows", "weak_window_fits", "window_quadrature", "weak_layout_supported", "weak_stats",
            "weak_input_output_stats", "derivative_terms", "reml_weight", "effective_share", "bump_functions",

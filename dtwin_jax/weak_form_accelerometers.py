@@ -32,9 +32,16 @@ import numpy as np
 from dtwin_jax import sampler
 from dtwin_jax.denoise import auto_half_width, noise_std
 from dtwin_jax.library import Library
-from dtwin_jax.systems import LinearSecondOrder
-from dtwin_jax.weak_form import (TEST_POWER, effective_share, reml_weight, bump_functions, weak_stats, weak_windows,
-                                 window_quadrature)
+from dtwin_jax.models.systems import LinearSecondOrder
+from dtwin_jax.weak_form import (
+    TEST_POWER,
+    bump_functions,
+    effective_share,
+    reml_weight,
+    weak_stats,
+    weak_windows,
+    window_quadrature,
+)
 
 __all__ = ["accelerometer_filters", "accelerometer_weak_stats", "constant_columns", "equivalent_linear"]
 

@@ -1,4 +1,4 @@
-"""A positioning stage in closed loop (`dtwin_jax.plants.positioning_stage`): update its twin
+"""A positioning stage in closed loop (`dtwin_jax.models.plants.positioning_stage`): update its twin
 from the encoder position and the motor force alone, and compare free runs on a held-out
 record with the textbook friction model fitted by least squares (issue 26, item 6).
 
@@ -32,8 +32,8 @@ import numpy as np
 import dtwin_jax  # noqa: F401 (float64)
 from dtwin_jax import posterior_twins, predict, simulate, update_input_output
 from dtwin_jax.measurement import smooth
-from dtwin_jax.plants import StageParams, positioning_stage, stage_nominal
-from dtwin_jax.systems import LinearSecondOrder, PerturbedSystem
+from dtwin_jax.models.plants import StageParams, positioning_stage, stage_nominal
+from dtwin_jax.models.systems import LinearSecondOrder, PerturbedSystem
 
 
 def textbook_fit(d, dt):

@@ -1,4 +1,4 @@
-"""Posterior-predictive checks of an updated twin (dtwin_jax.prediction), called from the tests
+"""Posterior-predictive checks of an updated twin (dtwin_jax.models.prediction), called from the tests
 that already update each example in each framework (one update, not two).
 
 10 s of excitation never seen in training; normalised RMSE = RMS error / std of the truth.
@@ -10,9 +10,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import posterior_twins, predict, simulate, simulation_error, systems
-from dtwin_jax.prediction import degradation_forecast
+from dtwin_jax import posterior_twins, predict, simulate, simulation_error
 from dtwin_jax.io.store import load_twin, save_twin
+from dtwin_jax.models import systems
+from dtwin_jax.models.prediction import degradation_forecast
 
 
 def check_input_output_prediction(ex, result, tol=0.05, draws=30):

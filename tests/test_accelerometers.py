@@ -10,11 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dtwin_jax import SamplerSettings, systems, update_input_output
+from dtwin_jax import SamplerSettings, update_input_output
 from dtwin_jax.accelerometers import anchored_smoother
 from dtwin_jax.cli import main
 from dtwin_jax.errors import DataError
 from dtwin_jax.measurement import measure
+from dtwin_jax.models import systems
 
 LIBRARY = "poly:3,sign,abs,xabs,input"  # the zoo's: the programs the zoo-0000 test compiles serve
 SETTINGS = SamplerSettings(num_chains=2, num_draws=500, num_burnin=250)
@@ -94,7 +95,7 @@ def test_weak_rows_are_exact_for_the_nominal_part_without_any_state_estimate():
     # Noise-free zoo member 0 (cubic hardening): with the true states in the library and
     # the true coefficient, the weak rows' residual is quadrature error only (measured 1e-13
     # of the target's energy): int chi'' q = int chi a and int chi'' v = -int chi' a hold.
-    from dtwin_jax import zoo
+    from dtwin_jax.models import zoo
     from dtwin_jax.update.sampling import resolve_library
     from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats
 
@@ -130,7 +131,7 @@ def test_a_hardening_spring_stronger_than_the_nominal_stiffness():
     # Zoo member 0: the cubic's force is 1.6x the nominal spring's, so the nominal anchor put
     # the states 9% off and the old loop lost the term (60% exact on the zoo). From the
     # equivalent linear start with the Gauss-Newton anchor: exact, 0.08% off (measured).
-    from dtwin_jax import zoo
+    from dtwin_jax.models import zoo
 
     member = zoo.draw_member(0)
     ex, nominal = member.example, member.example.system.nominal

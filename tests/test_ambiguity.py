@@ -131,8 +131,9 @@ def test_rows_near_velocity_reversals_are_left_out_so_drag_and_friction_are_told
     # zoo.drag_and_coulomb(1): before, `x2 + x2**3 + sign(x2)` won (PIP 1) with the friction
     # 10% low and its HDI off the truth; the 0.7-0.8% of rows whose denoised velocity's sign
     # is a coin flip did it (benchmarks/ambiguity.py).
-    from dtwin_jax import systems, update_input_output, zoo
+    from dtwin_jax import update_input_output
     from dtwin_jax.measurement import measure
+    from dtwin_jax.models import systems, zoo
     from dtwin_jax.update.result import SamplerSettings
 
     member = zoo.drag_and_coulomb(1)

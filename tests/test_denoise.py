@@ -4,10 +4,10 @@ import jax
 import numpy as np
 
 import dtwin_jax  # noqa: F401
-from dtwin_jax import systems
 from dtwin_jax.data import check_records
 from dtwin_jax.denoise import kinematic_smoother, noise_std
 from dtwin_jax.measurement import measure
+from dtwin_jax.models import systems
 from dtwin_jax.targets import input_output_targets
 from dtwin_jax.update import denoise_states
 
@@ -59,7 +59,7 @@ def test_kinematic_smoother_noise_by_likelihood_on_friction():
     likelihood fit leaves 0.17x here (measured)."""
     import jax.numpy as jnp
 
-    from dtwin_jax.systems import Example, LinearSecondOrder, PerturbedSystem
+    from dtwin_jax.models.systems import Example, LinearSecondOrder, PerturbedSystem
 
     def friction_and_drag(x, u, p):
         v = x[1]

@@ -17,10 +17,10 @@ from dtwin_jax.cli import main
 from dtwin_jax.data import check_records, uniform_times
 from dtwin_jax.errors import DataError
 from dtwin_jax.io import load_measurements, load_nominal, write_json
+from dtwin_jax.models import zoo
+from dtwin_jax.models.systems import EXAMPLES, LinearSecondOrder
 from dtwin_jax.posterior import format_coefficient, format_equation
 from dtwin_jax.progress import Stages, draws_bars
-from dtwin_jax.systems import EXAMPLES, LinearSecondOrder
-from dtwin_jax import zoo
 
 NOMINAL = "M = [[1.0]]\nC = [[2.0]]\nK = [[1000.0]]\nB = [[0.5]]\n"
 SHORT = ("--draws", "50", "--burn-in", "10", "--chains", "1", "--library", "poly:3,input")
@@ -376,7 +376,7 @@ def test_simulation_does_not_depend_on_the_time_origin():
     input gives the same states from epoch timestamps, to their float64 rounding."""
     import jax.numpy as jnp
 
-    from dtwin_jax.systems import example1, simulate
+    from dtwin_jax.models.systems import example1, simulate
 
     ex = example1()
     s = np.arange(200) * 1e-3

@@ -9,7 +9,7 @@ import pytest
 
 from dtwin_jax import SamplerSettings, update_input_output
 from dtwin_jax.errors import DataError
-from dtwin_jax.plants import StageParams, positioning_stage, stage_nominal
+from dtwin_jax.models.plants import StageParams, positioning_stage, stage_nominal
 
 PARAMS = StageParams(disturbance=20.0)
 LIBRARY = "terms:1;x2;sign(x2);x2**3;u1"

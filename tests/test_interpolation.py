@@ -8,11 +8,11 @@ import jax
 import numpy as np
 import pytest
 
-from dtwin_jax import systems
 from dtwin_jax.errors import DataError
-from dtwin_jax.measurement import measure
 from dtwin_jax.io.store import load_twin, save_twin
-from dtwin_jax.systems import (
+from dtwin_jax.measurement import measure
+from dtwin_jax.models import systems
+from dtwin_jax.models.systems import (
     HIGH_BAND_THRESHOLD,
     choose_interpolation,
     high_band_fraction,

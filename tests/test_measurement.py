@@ -16,7 +16,7 @@ from dtwin_jax.measurement import (
     smooth,
     smoothing_half_width,
 )
-from dtwin_jax.systems import example1, example2
+from dtwin_jax.models.systems import example1, example2
 
 DT = 1e-3
 

@@ -6,13 +6,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from predictive import check_output_only_prediction
 
-from dtwin_jax import DataError, SamplerSettings, kramers_moyal, systems, update_output_only
+from dtwin_jax import DataError, SamplerSettings, kramers_moyal, update_output_only
 from dtwin_jax.cli import main
 from dtwin_jax.io import write_nominal
 from dtwin_jax.library import parse_library
 from dtwin_jax.measurement import add_noise
-from predictive import check_output_only_prediction
+from dtwin_jax.models import systems
 
 FAST = SamplerSettings(num_chains=2, num_draws=600, num_burnin=300)
 
@@ -191,7 +192,10 @@ def test_update_runs_the_two_drift_passes_as_output_only_drift_stats_does():
     run is the drift sampling's program): the same as the one pure function the sweeps run,
     on 30 records of which the first pass uses 19."""
     from dtwin_jax.update.output_only import drift_statistics
-    from dtwin_jax.update.output_only_stats import first_pass_rows, output_only_drift_stats
+    from dtwin_jax.update.output_only_stats import (
+        first_pass_rows,
+        output_only_drift_stats,
+    )
 
     ex, t, x = _ensemble("example1", records=30)
     nominal, lib, x = ex.system.nominal, parse_library("poly:2", 2, 0), jnp.asarray(x)

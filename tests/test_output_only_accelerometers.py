@@ -7,11 +7,12 @@ import jax
 import numpy as np
 import pytest
 
-from dtwin_jax import SamplerSettings, systems, update_output_only, zoo
+from dtwin_jax import SamplerSettings, update_output_only
 from dtwin_jax.errors import DataError
-from dtwin_jax.prediction import posterior_twins
 from dtwin_jax.io.store import load_twin, save_twin
 from dtwin_jax.library import parse_library
+from dtwin_jax.models import systems, zoo
+from dtwin_jax.models.prediction import posterior_twins
 from dtwin_jax.update.output_only_accelerometers import increment_stats
 
 

@@ -2,6 +2,7 @@
 identification of a nominal linear model: dtwin_jax.estimate, systems.upsample."""
 
 import json
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ from dtwin_jax import SamplerSettings, simulate, update_input_output
 from dtwin_jax.errors import DataError
 from dtwin_jax.estimate import discretize
 from dtwin_jax.io import load_measurements, load_nominal, write_nominal
-from dtwin_jax.systems import LinearSecondOrder, PerturbedSystem, upsample
+from dtwin_jax.models.systems import LinearSecondOrder, PerturbedSystem, upsample
 
 SHORT = SamplerSettings(num_chains=2, num_draws=500, num_burnin=300)
 

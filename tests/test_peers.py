@@ -26,7 +26,8 @@ def test_nominal_removed_exact_on_clean_data():
 
     sys.path.insert(0, os.path.dirname(PEERS))
     import peers
-    from dtwin_jax import systems, zoo
+
+    from dtwin_jax.models import systems, zoo
 
     member = zoo.draw_member(0)  # cubic-hardening: x2' perturbed by x1**3
     ex = member.example

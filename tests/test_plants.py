@@ -5,7 +5,7 @@ import jax
 import numpy as np
 
 import dtwin_jax  # noqa: F401 (float64)
-from dtwin_jax.plants import StageParams, positioning_stage, stage_nominal
+from dtwin_jax.models.plants import StageParams, positioning_stage, stage_nominal
 
 
 def test_the_stage_tracks_its_reference_with_a_quantized_encoder_and_sticks_at_reversals():

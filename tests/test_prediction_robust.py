@@ -11,16 +11,23 @@ import numpy as np
 import pytest
 
 import dtwin_jax  # noqa: F401
-from dtwin_jax import systems, zoo
 from dtwin_jax.cli import main
 from dtwin_jax.errors import DataError
 from dtwin_jax.io import write_nominal
+from dtwin_jax.io.store import load_twin, save_twin
 from dtwin_jax.library import parse_library
 from dtwin_jax.measurement import measure
-from dtwin_jax.prediction import (PredictionWarning, UpdatedTwin, divergence_bounds, fixed_substeps, is_nonsmooth,
-                                  posterior_twins, predict)
-from dtwin_jax.io.store import load_twin, save_twin
-from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.models import systems, zoo
+from dtwin_jax.models.prediction import (
+    PredictionWarning,
+    UpdatedTwin,
+    divergence_bounds,
+    fixed_substeps,
+    is_nonsmooth,
+    posterior_twins,
+    predict,
+)
+from dtwin_jax.models.systems import LinearSecondOrder
 
 SHORT = ["--chains", "2", "--draws", "300", "--burn-in", "150", "--quiet"]
 NOMINAL = dict(M=[[1.0]], C=[[2.0]], K=[[1000.0]], B=[[1.0]])  # 5 Hz, 3% damping
@@ -190,7 +197,7 @@ def test_max_steps_is_one_line():
                                                jnp.ones((100, 1)), -jnp.inf * jnp.ones(2), jnp.inf * jnp.ones(2),
                                                max_steps=20)
     assert int(status) == systems.MAX_STEPS and 0 < float(stop) < 0.099
-    from dtwin_jax.prediction import failure_message
+    from dtwin_jax.models.prediction import failure_message
 
     msg = failure_message(np.array([int(status), 0]), np.array([float(stop), 0.099]))
     assert msg.startswith("the solver ran out of steps at t = ") and "in 1 of 2 posterior draws" in msg

@@ -144,9 +144,13 @@ def test_parse_library_refuses_a_huge_library_before_building_it(spec, m, n, mes
 
 def test_api_entry_points_check_before_allocating(folder, monkeypatch):
     from dtwin_jax import LinearSecondOrder
-    from dtwin_jax.prediction import posterior_twins, predict
     from dtwin_jax.io.store import load_twin
-    from dtwin_jax.update import SamplerSettings, update_input_output, update_output_only
+    from dtwin_jax.models.prediction import posterior_twins, predict
+    from dtwin_jax.update import (
+        SamplerSettings,
+        update_input_output,
+        update_output_only,
+    )
 
     with pytest.raises(DataError, match="extra_states 100000000 needs about .* for the nominal model"):
         LinearSecondOrder.create([[1.0]], [[1.0]], [[1.0]], extra_states=100_000_000)

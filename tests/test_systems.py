@@ -8,7 +8,7 @@ import sympy
 
 import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax.errors import DataError
-from dtwin_jax.systems import (
+from dtwin_jax.models.systems import (
     EXAMPLES,
     LinearSecondOrder,
     example1,

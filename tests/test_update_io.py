@@ -7,12 +7,12 @@ CI runs shorter chains (2 x 1000 draws) than the README's benchmark (4 x 2000).
 import jax
 import numpy as np
 import pytest
+from predictive import check_degradation_forecast, check_input_output_prediction
 
 import dtwin_jax  # noqa: F401
-from dtwin_jax import systems
 from dtwin_jax.measurement import measure
+from dtwin_jax.models import systems
 from dtwin_jax.update import SamplerSettings, update_input_output
-from predictive import check_degradation_forecast, check_input_output_prediction
 
 SETTINGS = SamplerSettings(num_chains=2, num_draws=1000, num_burnin=500)
 

@@ -4,12 +4,17 @@ import jax
 import numpy as np
 import pytest
 
-from dtwin_jax import systems
+from dtwin_jax import SamplerSettings, update_input_output
 from dtwin_jax.errors import DataError
 from dtwin_jax.measurement import measure
-from dtwin_jax import SamplerSettings, update_input_output
+from dtwin_jax.models import systems
 from dtwin_jax.update.sampling import resolve_library
-from dtwin_jax.weak_form import derivative_terms, window_quadrature, weak_input_output_stats, weak_windows
+from dtwin_jax.weak_form import (
+    derivative_terms,
+    weak_input_output_stats,
+    weak_windows,
+    window_quadrature,
+)
 
 
 def test_window_quadrature_integrates_by_parts():

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 import dtwin_jax  # noqa: F401  (float64)
-from dtwin_jax import SamplerSettings, measure, systems, update_input_output, zoo
+from dtwin_jax import SamplerSettings, measure, update_input_output
 from dtwin_jax.library import parse_library
+from dtwin_jax.models import systems, zoo
 
 SEED = 0  # members SEED .. SEED + len(FAMILIES) - 1: one of each family
 

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from dtwin_jax.errors import DataError
-from dtwin_jax.resources import check_file_arrays
-from dtwin_jax.systems import LinearSecondOrder, dtype_word
 from dtwin_jax.io.twin_folder import umask
+from dtwin_jax.models.systems import LinearSecondOrder, dtype_word
+from dtwin_jax.resources import check_file_arrays
 
 __all__ = ["load_nominal", "load_measurements", "load_prediction_input", "write_json", "write_nominal", "atomic_path"]
 

@@ -20,7 +20,7 @@ import importlib
 # name -> submodule that defines it, imported on first use (PEP 562): an input-output update
 # need not import framework 2's modules.
 _PUBLIC = {
-    "UpdatedTwin": "dtwin_jax.prediction",
+    "UpdatedTwin": "dtwin_jax.models.prediction",
     "denoise_states": "dtwin_jax.update.input_output",
     "update_input_output": "dtwin_jax.update.input_output",
     "update_output_only": "dtwin_jax.update.output_only",

@@ -9,8 +9,11 @@ import numpy as np
 from dtwin_jax.accelerometers import state_feedback
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library, parse_library
-from dtwin_jax.systems import LinearSecondOrder
-from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats, constant_columns
+from dtwin_jax.models.systems import LinearSecondOrder
+from dtwin_jax.weak_form_accelerometers import (
+    accelerometer_weak_stats,
+    constant_columns,
+)
 
 __all__ = ["WIDENING_WARNING", "accelerometer_regression", "without_constant_columns"]
 

@@ -35,15 +35,18 @@ from dtwin_jax.estimate import measured_index, state_smoother
 from dtwin_jax.library import Library, check_columns, without_degenerate_columns
 from dtwin_jax.measurement import smooth
 from dtwin_jax.model_error import training_model_error
-from dtwin_jax.progress import Stages
-from dtwin_jax.resources import check_update
-from dtwin_jax.systems import (
+from dtwin_jax.models.systems import (
     LinearSecondOrder,
     check_interpolation,
     resolve_interpolation,
 )
+from dtwin_jax.progress import Stages
+from dtwin_jax.resources import check_update
 from dtwin_jax.targets import input_output_targets, smoothed_input_output_stats
-from dtwin_jax.update.accelerometer_regression import accelerometer_regression, without_constant_columns
+from dtwin_jax.update.accelerometer_regression import (
+    accelerometer_regression,
+    without_constant_columns,
+)
 from dtwin_jax.update.lifecycle import (
     check_previous,
     check_repeat,
@@ -53,10 +56,10 @@ from dtwin_jax.update.lifecycle import (
 from dtwin_jax.update.output_error import refine_output_error
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 from dtwin_jax.update.sampling import (
-    sample_equations,
     numpy_stats,
     posteriors,
     resolve_library,
+    sample_equations,
 )
 from dtwin_jax.weak_form import (
     weak_input_output_stats,
@@ -99,7 +102,7 @@ def update_input_output(
 
     **Arguments:**
 
-    - ``nominal``: the nominal model :class:`~dtwin_jax.systems.LinearSecondOrder`.
+    - ``nominal``: the nominal model :class:`~dtwin_jax.models.systems.LinearSecondOrder`.
     - ``t``: ``(N,)`` sample times, s, uniform.
     - ``x``: ``(N, p)`` or ``(R, N, p)`` measured states (``R`` records), or None with
       ``xdot`` (accelerometers alone).
@@ -110,7 +113,7 @@ def update_input_output(
       ``["x1"]`` (default: all ``m`` in order).
     - ``interpolation``: the input between samples, ``"held"``, ``"linear"``,
       ``"bandlimited"``, or ``"auto"`` (chosen from its spectrum by
-      :func:`dtwin_jax.systems.choose_interpolation`; reported as
+      :func:`dtwin_jax.models.systems.choose_interpolation`; reported as
       ``preprocessing["input_interpolation"]`` and ``["input_interpolation_chosen_by"]``).
     - ``library``: a spec (formats.md, like ``"poly:3,sign,input"``) or a :class:`Library`;
       None: the default library, adapted to the data (columns the data cannot tell apart

@@ -16,7 +16,7 @@ from dtwin_jax import sampler
 from dtwin_jax.data import Records
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library
-from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.models.systems import LinearSecondOrder
 
 __all__ = ["check_previous", "check_repeat", "window_fingerprint", "with_previous", "updated_history"]
 

@@ -27,8 +27,8 @@ import numpy as np
 from dtwin_jax.data import check_records
 from dtwin_jax.errors import DataError
 from dtwin_jax.estimate import measured_index
-from dtwin_jax.prediction import fixed_substeps, is_nonsmooth
-from dtwin_jax.systems import simulate
+from dtwin_jax.models.prediction import fixed_substeps, is_nonsmooth
+from dtwin_jax.models.systems import simulate
 
 __all__ = ["refine_output_error"]
 
@@ -45,7 +45,7 @@ def refine_output_error(result, t, x, u, *, x_names=None, x0=None, noise_std=Non
     times). ``input_noise_std (n,)``: the measured input's noise (the update's
     ``preprocessing["input_noise_std"]``), whose response through the twin widens the
     covariance (``input_draws`` Monte Carlo draws). Returns a copy of ``result`` whose
-    ``refinement`` holds the refined posterior (:func:`dtwin_jax.prediction.posterior_twins`
+    ``refinement`` holds the refined posterior (:func:`dtwin_jax.models.prediction.posterior_twins`
     and ``result.twin`` use it).
     """
     if result.mode != "input-output":

@@ -21,11 +21,16 @@ from dtwin_jax.collinearity import collinearity_checks
 from dtwin_jax.data import check_records, state_range
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_library
+from dtwin_jax.models.systems import LinearSecondOrder
 from dtwin_jax.progress import Stages
 from dtwin_jax.resources import check_sampler, check_update
 from dtwin_jax.sampler import SuffStats
-from dtwin_jax.systems import LinearSecondOrder
-from dtwin_jax.update.lifecycle import check_previous, check_repeat, updated_history, with_previous
+from dtwin_jax.update.lifecycle import (
+    check_previous,
+    check_repeat,
+    updated_history,
+    with_previous,
+)
 from dtwin_jax.update.output_only_stats import (
     brownian_variance,
     diffusion_statistics,
@@ -35,7 +40,12 @@ from dtwin_jax.update.output_only_stats import (
     first_pass_settings,
 )
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
-from dtwin_jax.update.sampling import sample_equations, sampler_kwargs, numpy_stats, posteriors
+from dtwin_jax.update.sampling import (
+    numpy_stats,
+    posteriors,
+    sample_equations,
+    sampler_kwargs,
+)
 
 __all__ = ["update_output_only", "OUTPUT_ONLY_LIBRARY", "DIFFUSION_LIBRARY", "MARGIN_WARN"]
 
@@ -67,7 +77,7 @@ def update_output_only(
 
     **Arguments:**
 
-    - ``nominal``: the nominal model :class:`~dtwin_jax.systems.LinearSecondOrder`.
+    - ``nominal``: the nominal model :class:`~dtwin_jax.models.systems.LinearSecondOrder`.
     - ``t``: ``(N,)`` sample times, s, uniform.
     - ``x``: ``(N, m)`` one record (a structure in service) or ``(R, N, m)`` an ensemble of
       independent records, every state measured; pooled into one regression. None with
@@ -89,7 +99,9 @@ def update_output_only(
     """
     start = time.perf_counter()
     if x is None:  # accelerometers alone: ambient vibration
-        from dtwin_jax.update.output_only_accelerometers import update_from_accelerometers
+        from dtwin_jax.update.output_only_accelerometers import (
+            update_from_accelerometers,
+        )
 
         if diffusion_library is not None and str(getattr(diffusion_library, "spec", diffusion_library)) != "terms:1":
             raise DataError("accelerometers alone give a constant diffusion only: leave the diffusion library out")

@@ -32,22 +32,27 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax.accelerometers import ERROR_DRAWS, accelerometer_layout, accelerometer_states, widened_draws
+from dtwin_jax.accelerometers import (
+    ERROR_DRAWS,
+    accelerometer_layout,
+    accelerometer_states,
+    widened_draws,
+)
 from dtwin_jax.collinearity import collinearity_checks
 from dtwin_jax.data import check_records, state_range
 from dtwin_jax.errors import DataError
 from dtwin_jax.estimate import measured_index
 from dtwin_jax.library import Library
+from dtwin_jax.models.systems import LinearSecondOrder
 from dtwin_jax.posterior import EquationPosterior
 from dtwin_jax.progress import Stages
 from dtwin_jax.resources import check_update
 from dtwin_jax.sampler import SuffStats
-from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.update.accelerometer_regression import without_constant_columns
 from dtwin_jax.update.lifecycle import check_repeat, updated_history
 from dtwin_jax.update.output_only_stats import first_pass_settings
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
-from dtwin_jax.update.sampling import sample_equations, numpy_stats, posteriors
+from dtwin_jax.update.sampling import numpy_stats, posteriors, sample_equations
 from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats
 
 __all__ = ["CONSTANT_DIFFUSION", "SPLIT_PASSES", "update_from_accelerometers", "increment_stats"]

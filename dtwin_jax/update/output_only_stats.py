@@ -20,9 +20,9 @@ import jax.numpy as jnp
 
 from dtwin_jax import kramers_moyal, sampler, statespace
 from dtwin_jax._compile import aot
-from dtwin_jax.library import Library
 from dtwin_jax._compile.quick_compile import quick_jit
-from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.library import Library
+from dtwin_jax.models.systems import LinearSecondOrder
 from dtwin_jax.targets import equation_stats
 from dtwin_jax.update.result import SamplerSettings
 from dtwin_jax.update.sampling import sampler_kwargs

@@ -13,9 +13,13 @@ import numpy as np
 from dtwin_jax import sampler
 from dtwin_jax.collinearity import twin_coefficients
 from dtwin_jax.library import Library
+from dtwin_jax.models.prediction import (
+    UpdatedTwin,
+    diffusion_terms,
+    refined_coefficients,
+)
+from dtwin_jax.models.systems import LinearSecondOrder
 from dtwin_jax.posterior import EquationPosterior, format_coefficient
-from dtwin_jax.prediction import UpdatedTwin, diffusion_terms, refined_coefficients
-from dtwin_jax.systems import LinearSecondOrder
 
 __all__ = ["SamplerSettings", "UpdateResult"]
 

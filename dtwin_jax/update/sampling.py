@@ -12,9 +12,9 @@ import numpy as np
 from dtwin_jax import sampler
 from dtwin_jax._compile import aot
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, parse_library
+from dtwin_jax.models.systems import LinearSecondOrder
 from dtwin_jax.posterior import EquationPosterior
 from dtwin_jax.progress import Bar, tick
-from dtwin_jax.systems import LinearSecondOrder
 from dtwin_jax.update.result import SamplerSettings
 
 __all__ = ["resolve_library", "posteriors", "numpy_stats", "sample_equations", "sampler_kwargs"]

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax.errors import DataError
-from dtwin_jax.systems import LinearSecondOrder
+from dtwin_jax.models.systems import LinearSecondOrder
 
 __all__ = ["StageParams", "positioning_stage", "stage_nominal", "STAGE_TERMS"]
 

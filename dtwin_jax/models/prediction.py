@@ -5,7 +5,7 @@ output-only twin, the discovered diffusion): an equinox module, so its coefficie
 may carry a leading axis of posterior draws and the twin vmaps over them.
 :func:`posterior_twins` stacks draws of an update's posterior; :func:`predict` simulates
 them (an ODE under a given input, or an SDE under Brownian forcing, both with diffrax
-through :mod:`dtwin_jax.systems`) and returns the mean and the 2.5% and 97.5% quantiles of
+through :mod:`dtwin_jax.models.systems`) and returns the mean and the 2.5% and 97.5% quantiles of
 every state.
 """
 
@@ -19,11 +19,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import systems
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library, parse_library
+from dtwin_jax.models import systems
+from dtwin_jax.models.systems import LinearSecondOrder
 from dtwin_jax.resources import check_posterior_draws, check_prediction
-from dtwin_jax.systems import LinearSecondOrder
 
 __all__ = ["UpdatedTwin", "posterior_twins", "predict", "simulation_error", "with_model_error", "effective_stiffness",
            "degradation_forecast", "divergence_bounds", "fixed_substeps", "is_nonsmooth", "PredictionWarning",
