@@ -135,8 +135,8 @@ def update_rows(quick: bool) -> list[dict]:
     """Example 1 at 5% noise, updated twice in this process (cold: tracing and compilation;
     warm: the programs cached): input-output (1 s at 1 kHz) and output-only (300 x 1 s)."""
     from dtwin_jax import SamplerSettings, update_input_output, update_output_only
-    from dtwin_jax.measurement import add_noise, measure
     from dtwin_jax.models import systems
+    from dtwin_jax.preprocess.measurement import add_noise, measure
 
     settings = SamplerSettings(num_chains=2, num_draws=500, num_burnin=250) if quick else SamplerSettings()
     ex = systems.example1()

@@ -36,8 +36,8 @@ import numpy as np
 
 import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax import SamplerSettings, sampler, update_input_output
-from dtwin_jax.measurement import measure
 from dtwin_jax.models import systems, zoo
+from dtwin_jax.preprocess.measurement import measure
 
 sys.path.insert(0, str(Path(__file__).parent))
 from zoo import score

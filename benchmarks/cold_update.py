@@ -26,8 +26,8 @@ import jax
 import numpy as np
 
 from dtwin_jax import SamplerSettings, update_output_only
-from dtwin_jax.measurement import add_noise
 from dtwin_jax.models import systems
+from dtwin_jax.preprocess.measurement import add_noise
 
 
 def main(name: str = "example1", records: int = 100, default_settings: bool = False, library: str | None = None) -> None:

@@ -23,10 +23,10 @@ from dtwin_jax import (
     simulation_error,
     update_input_output,
 )
-from dtwin_jax.measurement import measure
 from dtwin_jax.models import systems
 from dtwin_jax.models.prediction import degradation_forecast
 from dtwin_jax.plots import plot_degradation, plot_prediction
+from dtwin_jax.preprocess.measurement import measure
 
 
 def main(horizon: float, draws: int):

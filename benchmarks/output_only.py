@@ -14,9 +14,10 @@ import time
 import jax
 import numpy as np
 
-from dtwin_jax import SamplerSettings, kramers_moyal, statespace, update_output_only
-from dtwin_jax.measurement import add_noise
+from dtwin_jax import SamplerSettings, update_output_only
 from dtwin_jax.models import systems
+from dtwin_jax.output_only import kramers_moyal, statespace
+from dtwin_jax.preprocess.measurement import add_noise
 
 
 def run(name, level, records, duration, seed, settings):

@@ -15,11 +15,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import kramers_moyal, statespace
 from dtwin_jax.library import parse_library
-from dtwin_jax.measurement import add_noise
 from dtwin_jax.models import systems
-from dtwin_jax.update.output_only_stats import output_only_drift_stats
+from dtwin_jax.output_only import kramers_moyal, statespace
+from dtwin_jax.output_only.stats import output_only_drift_stats
+from dtwin_jax.preprocess.measurement import add_noise
 
 
 def _seconds(fn) -> float:

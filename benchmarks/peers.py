@@ -76,8 +76,8 @@ import zoo as zoo_benchmark  # benchmarks/zoo.py: _layout, score
 import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax import SamplerSettings, update_input_output
 from dtwin_jax.library import parse_library
-from dtwin_jax.measurement import measure
 from dtwin_jax.models import systems, zoo
+from dtwin_jax.preprocess.measurement import measure
 
 LAYOUTS = ("accelerations", "states")
 METHODS = ("dtwin-jax", "STLSQ", "ensemble STLSQ", "SBR", "weak STLSQ")

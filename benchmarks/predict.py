@@ -25,8 +25,8 @@ from dtwin_jax import (
     update_input_output,
     update_output_only,
 )
-from dtwin_jax.measurement import add_noise, measure
 from dtwin_jax.models import systems
+from dtwin_jax.preprocess.measurement import add_noise, measure
 
 
 def main(name: str, mode: str):

@@ -16,8 +16,8 @@ import numpy as np
 
 import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax import SamplerSettings, simulate, simulation_error, update_input_output
-from dtwin_jax.measurement import measure
 from dtwin_jax.models import systems, zoo
+from dtwin_jax.preprocess.measurement import measure
 
 
 def run_member(member, settings):

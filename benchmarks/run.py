@@ -322,8 +322,8 @@ def full_update_section(quick: bool) -> Section:
     from dtwin_jax import SamplerSettings, update_input_output, update_output_only
     from dtwin_jax.io import write_nominal
     from dtwin_jax.library import parse_library
-    from dtwin_jax.measurement import add_noise, measure
     from dtwin_jax.models import systems
+    from dtwin_jax.preprocess.measurement import add_noise, measure
 
     rows = []
     ex = systems.example1()

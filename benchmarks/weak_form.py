@@ -16,8 +16,8 @@ import numpy as np
 
 import dtwin_jax  # noqa: F401
 from dtwin_jax import SamplerSettings, update_input_output
-from dtwin_jax.measurement import measure
 from dtwin_jax.models import systems
+from dtwin_jax.preprocess.measurement import measure
 
 
 def run(ex, library, level, seed, smoothing, settings):

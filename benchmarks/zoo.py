@@ -27,8 +27,8 @@ import numpy as np
 
 import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax import SamplerSettings, update_input_output, update_output_only
-from dtwin_jax.measurement import add_noise, measure
 from dtwin_jax.models import systems, zoo
+from dtwin_jax.preprocess.measurement import add_noise, measure
 
 LAYOUTS = ("accelerations", "states", "displacement", "accelerometers")
 

@@ -20,7 +20,7 @@ _PUBLIC = {
     "Library": "library",
     "parse_library": "library",
     "DataError": "errors",
-    "measure": "measurement",
+    "measure": "preprocess.measurement",
     "LinearSecondOrder": "models.systems",
     "PerturbedSystem": "models.systems",
     "simulate": "models.systems",

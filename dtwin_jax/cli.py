@@ -253,7 +253,7 @@ def _update(args, mode, nominal, data, *, library, diffusion_library=None, previ
     if mode == "output-only":
         if getattr(args, "refine", False):
             raise DataError("--refine needs input-output data (output error simulates the measured input)")
-        from dtwin_jax.update.output_only import update_output_only
+        from dtwin_jax.output_only.update import update_output_only
 
         if "x" not in data:  # accelerometers alone: ambient vibration
             return update_output_only(nominal, data["t"], None, xdot=data["xdot"], xdot_names=data.get("xdot_names"),
@@ -264,7 +264,7 @@ def _update(args, mode, nominal, data, *, library, diffusion_library=None, previ
                                   diffusion_library=diffusion_library, **common)
     if "u" not in data:
         raise DataError(f"input-output mode needs key 'u' in '{args.data}'")
-    from dtwin_jax.update.input_output import update_input_output
+    from dtwin_jax.input_output.update import update_input_output
 
     return update_input_output(nominal, data["t"], data.get("x"), data["u"], data.get("xdot"),
                                x_names=data.get("x_names"), xdot_names=data.get("xdot_names"),
@@ -407,8 +407,8 @@ def _predict(args) -> int:
 def _demo(args) -> int:
     import jax
 
-    from dtwin_jax.measurement import measure
     from dtwin_jax.models import systems
+    from dtwin_jax.preprocess.measurement import measure
     from dtwin_jax.update import update_input_output
 
     _check_threshold(args.pip_threshold)
@@ -440,8 +440,8 @@ def _demo_output_only(args, ex, say) -> int:
     import jax
     import numpy as np
 
-    from dtwin_jax.measurement import add_noise
     from dtwin_jax.models import systems
+    from dtwin_jax.preprocess.measurement import add_noise
     from dtwin_jax.update import update_output_only
 
     ex = ex.for_output_only()

@@ -15,7 +15,7 @@ the level are not blurred by independent noise per level (see :func:`study_keys`
 
 Framework 2 (output-only): the drift (simulation of ``records`` Brownian-forced records per
 replicate, Kramers-Moyal statistics, sampling, summaries) is one compiled program; the
-diffusion (likelihood maximum by :func:`dtwin_jax.statespace.diffusion_mle`, its EM targets'
+diffusion (likelihood maximum by :func:`dtwin_jax.output_only.statespace.diffusion_mle`, its EM targets'
 statistics) another, mapped over the (level, replicate) pairs, and its sampling a third. The
 diffusion is the slow part on CPU (~10 s per level and replicate with 100 records).
 """
@@ -32,17 +32,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import kramers_moyal, measurement, sampler, statespace, targets
-from dtwin_jax.denoise import auto_half_width
+from dtwin_jax import sampler
 from dtwin_jax.errors import DataError
+from dtwin_jax.input_output import targets
 from dtwin_jax.library import Library, parse_library
 from dtwin_jax.models import systems
-from dtwin_jax.progress import Bar, tick
-from dtwin_jax.update.output_only import DIFFUSION_LIBRARY
-from dtwin_jax.update.output_only_stats import (
+from dtwin_jax.output_only import kramers_moyal, statespace
+from dtwin_jax.output_only.stats import (
     diffusion_statistics,
     output_only_drift_stats,
 )
+from dtwin_jax.output_only.update import DIFFUSION_LIBRARY
+from dtwin_jax.preprocess import measurement
+from dtwin_jax.preprocess.denoise import auto_half_width
+from dtwin_jax.progress import Bar, tick
 from dtwin_jax.update.result import SamplerSettings
 from dtwin_jax.update.sampling import sampler_kwargs
 

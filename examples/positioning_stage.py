@@ -31,9 +31,9 @@ import numpy as np
 
 import dtwin_jax  # noqa: F401 (float64)
 from dtwin_jax import posterior_twins, predict, simulate, update_input_output
-from dtwin_jax.measurement import smooth
 from dtwin_jax.models.plants import StageParams, positioning_stage, stage_nominal
 from dtwin_jax.models.systems import LinearSecondOrder, PerturbedSystem
+from dtwin_jax.preprocess.measurement import smooth
 
 
 def textbook_fit(d, dt):

@@ -7,7 +7,7 @@ multisine part, simulate in free run on the "arrow" part, report the RMS error i
 From V1 (input, V) and V2 (output, V) alone, on the default route: the output is the
 displacement `x1` (the only measured state, `x_names = ["x1"]`), the input's interpolation
 is chosen from its spectrum (band-limited), the nominal linear model is identified from the
-same data (:func:`dtwin_jax.estimate.identify_linear`), and the update takes the default
+same data (:func:`dtwin_jax.preprocess.estimate.identify_linear`), and the update takes the default
 library and settings (the weak form, its velocity from the state-space smoother). The band
 holds the posterior draws and the twin's model error (its free-run error on the training
 data), as every prediction does by default. ``--library`` replaces the default library.
@@ -24,7 +24,7 @@ import jax
 import numpy as np
 
 from dtwin_jax import posterior_twins, predict, simulate, update_input_output
-from dtwin_jax.estimate import identify_linear
+from dtwin_jax.preprocess.estimate import identify_linear
 
 FS = 1e7 / 2**14  # Hz
 DATA = Path(__file__).resolve().parents[1] / "data" / "silverbox" / "SNLS80mV.csv"  # provenance: its README

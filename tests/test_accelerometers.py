@@ -1,5 +1,5 @@
 """Accelerometers alone (formats.md: ``x`` left out, ``xdot`` of the velocity states): the
-states come from the anchored smoother with the twin in the loop (dtwin_jax.accelerometers),
+states come from the anchored smoother with the twin in the loop (dtwin_jax.preprocess.accelerometers),
 on the default input-output route and through the command line; layouts that cannot work
 are refused in one line naming the missing measurement."""
 
@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from dtwin_jax import SamplerSettings, update_input_output
-from dtwin_jax.accelerometers import anchored_smoother
 from dtwin_jax.cli import main
 from dtwin_jax.errors import DataError
-from dtwin_jax.measurement import measure
 from dtwin_jax.models import systems
+from dtwin_jax.preprocess.accelerometers import anchored_smoother
+from dtwin_jax.preprocess.measurement import measure
 
 LIBRARY = "poly:3,sign,abs,xabs,input"  # the zoo's: the programs the zoo-0000 test compiles serve
 SETTINGS = SamplerSettings(num_chains=2, num_draws=500, num_burnin=250)
@@ -96,8 +96,8 @@ def test_weak_rows_are_exact_for_the_nominal_part_without_any_state_estimate():
     # the true coefficient, the weak rows' residual is quadrature error only (measured 1e-13
     # of the target's energy): int chi'' q = int chi a and int chi'' v = -int chi' a hold.
     from dtwin_jax.models import zoo
+    from dtwin_jax.preprocess.weak_form_accelerometers import accelerometer_weak_stats
     from dtwin_jax.update.sampling import resolve_library
-    from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats
 
     member = zoo.draw_member(0)
     ex, nominal = member.example, member.example.system.nominal
@@ -114,7 +114,7 @@ def test_weak_rows_are_exact_for_the_nominal_part_without_any_state_estimate():
 def test_equivalent_linear_finds_a_stiffness_change_from_accelerations_alone():
     # A linear SDOF whose stiffness is 30% above the nominal: the correction comes from the
     # weak rows' exact linear columns, no state estimated (measured 0.1% off at 2% noise).
-    from dtwin_jax.weak_form_accelerometers import equivalent_linear
+    from dtwin_jax.preprocess.weak_form_accelerometers import equivalent_linear
 
     true = systems.LinearSecondOrder.create([[2.0]], [[4.0]], [[2600.0]], [[1.0]])
     nominal = systems.LinearSecondOrder.create([[2.0]], [[4.0]], [[2000.0]], [[1.0]])
@@ -163,7 +163,7 @@ def test_widened_draws_have_the_fixed_points_covariance():
     # with covariance (I - T')^-1/2 (V + extra) (I - T')^-1/2 (Meng-Rubin); a term excluded in
     # a draw stays zero. zoo-0018 (a cubic coupling, T' eigenvalue 0.93) is the case in the zoo
     # benchmark: 7 of its 8 HDIs hold the truth with this widening, none without.
-    from dtwin_jax.accelerometers import widened_draws
+    from dtwin_jax.preprocess.accelerometers import widened_draws
 
     rng = np.random.default_rng(0)
     q, C, D, K = 1, 4, 20000, 3

@@ -132,8 +132,8 @@ def test_rows_near_velocity_reversals_are_left_out_so_drag_and_friction_are_told
     # 10% low and its HDI off the truth; the 0.7-0.8% of rows whose denoised velocity's sign
     # is a coin flip did it (benchmarks/ambiguity.py).
     from dtwin_jax import update_input_output
-    from dtwin_jax.measurement import measure
     from dtwin_jax.models import systems, zoo
+    from dtwin_jax.preprocess.measurement import measure
     from dtwin_jax.update.result import SamplerSettings
 
     member = zoo.drag_and_coulomb(1)

@@ -11,9 +11,9 @@ import pytest
 import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax import sampler
 from dtwin_jax._compile import aot
-from dtwin_jax.denoise import kinematic_smoother
-from dtwin_jax.measurement import measure
 from dtwin_jax.models import systems
+from dtwin_jax.preprocess.denoise import kinematic_smoother
+from dtwin_jax.preprocess.measurement import measure
 
 
 @pytest.fixture

@@ -10,8 +10,8 @@ from dtwin_jax.cli import main
 from dtwin_jax.collinearity import COSINE_MIN, PIP_MIN, collinear_groups
 from dtwin_jax.io import write_nominal
 from dtwin_jax.io.store import load_twin
-from dtwin_jax.measurement import measure
 from dtwin_jax.models import systems
+from dtwin_jax.preprocess.measurement import measure
 from dtwin_jax.update import SamplerSettings, update_input_output
 
 TRUE_C = -3000.0  # x2' += TRUE_C * x1 * x2

@@ -5,10 +5,10 @@ import numpy as np
 
 import dtwin_jax  # noqa: F401
 from dtwin_jax.data import check_records
-from dtwin_jax.denoise import kinematic_smoother, noise_std
-from dtwin_jax.measurement import measure
+from dtwin_jax.input_output.targets import input_output_targets
 from dtwin_jax.models import systems
-from dtwin_jax.targets import input_output_targets
+from dtwin_jax.preprocess.denoise import kinematic_smoother, noise_std
+from dtwin_jax.preprocess.measurement import measure
 from dtwin_jax.update import denoise_states
 
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from dtwin_jax.errors import DataError
-from dtwin_jax.estimate import STABLE_RTOL, identify_linear
-from dtwin_jax.measurement import add_noise
 from dtwin_jax.models.systems import LinearSecondOrder, PerturbedSystem, simulate
+from dtwin_jax.preprocess.estimate import STABLE_RTOL, identify_linear
+from dtwin_jax.preprocess.measurement import add_noise
 
 STAGE = LinearSecondOrder.create([[100.0]], [[50.0]], [[0.0]], [[1.0]], F0=[2.0])
 N, DT = 2000, 1e-3  # 2 s at 1 kHz

@@ -1,4 +1,4 @@
-"""A closed loop's reference as an instrument (dtwin_jax.instruments): the positioning stage
+"""A closed loop's reference as an instrument (dtwin_jax.preprocess.instruments): the positioning stage
 under PD control with an unmeasured random force of 20 N, which the controller fights, so the
 measured motor force carries it. Least squares then hands part of the friction to the input;
 two-stage least squares on the reference's lags does not."""

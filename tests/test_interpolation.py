@@ -10,7 +10,6 @@ import pytest
 
 from dtwin_jax.errors import DataError
 from dtwin_jax.io.store import load_twin, save_twin
-from dtwin_jax.measurement import measure
 from dtwin_jax.models import systems
 from dtwin_jax.models.systems import (
     HIGH_BAND_THRESHOLD,
@@ -18,6 +17,7 @@ from dtwin_jax.models.systems import (
     high_band_fraction,
     resolve_interpolation,
 )
+from dtwin_jax.preprocess.measurement import measure
 from dtwin_jax.update import SamplerSettings, update_input_output
 
 N = 4000

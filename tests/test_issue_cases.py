@@ -11,9 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import SamplerSettings, update_input_output, update_output_only
-from dtwin_jax.measurement import add_noise, measure
 from dtwin_jax.models import systems
 from dtwin_jax.models.systems import Example, LinearSecondOrder, PerturbedSystem
+from dtwin_jax.preprocess.measurement import add_noise, measure
 
 SETTINGS = SamplerSettings(num_chains=2, num_draws=1000, num_burnin=500)
 

@@ -293,7 +293,7 @@ def test_hermite_polynomials_are_unbiased_for_monomials():
     """E[T_n(x + eps)] = x^n for eps ~ N(0, s^2): the exact errors-in-variables correction."""
     from numpy.polynomial.hermite_e import hermegauss
 
-    from dtwin_jax.kramers_moyal import _hermite_table
+    from dtwin_jax.output_only.kramers_moyal import _hermite_table
 
     s2 = np.array([0.04, 0.5])
     x = np.array([[0.3, -1.2], [-0.8, 0.1]])
@@ -308,7 +308,7 @@ def test_hermite_polynomials_are_unbiased_for_monomials():
 def test_drift_statistics_derivatives_match_differentiation_of_the_whole_library():
     """The drift statistics' `d_j L`, `d_j^2 L` (monomials in closed form, block by block)
     equal forward-over-forward differentiation of the whole library, smoothed columns too."""
-    from dtwin_jax.kramers_moyal import _derivatives, _differentiated
+    from dtwin_jax.output_only.kramers_moyal import _derivatives, _differentiated
 
     lib = parse_library("poly:4,sign,abs,xabs,exp,expxx,sin,cos,terms:x1**5*x3;x2*exp(-x1)", 3, 0)
     x = jnp.asarray(np.random.default_rng(2).normal(size=(40, 3)))

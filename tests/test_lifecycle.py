@@ -9,8 +9,8 @@ from dtwin_jax import posterior_twins, predict
 from dtwin_jax.cli import main
 from dtwin_jax.io import write_nominal
 from dtwin_jax.io.store import load_twin
-from dtwin_jax.measurement import measure
 from dtwin_jax.models import systems
+from dtwin_jax.preprocess.measurement import measure
 
 SHORT = ["--chains", "2", "--draws", "400", "--burn-in", "200", "--quiet"]
 

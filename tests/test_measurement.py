@@ -6,7 +6,8 @@ import scipy.signal
 
 import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax.errors import DataError
-from dtwin_jax.measurement import (
+from dtwin_jax.models.systems import example1, example2
+from dtwin_jax.preprocess.measurement import (
     Measurements,
     add_noise,
     estimate_rates,
@@ -16,7 +17,6 @@ from dtwin_jax.measurement import (
     smooth,
     smoothing_half_width,
 )
-from dtwin_jax.models.systems import example1, example2
 
 DT = 1e-3
 

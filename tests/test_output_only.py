@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 from predictive import check_output_only_prediction
 
-from dtwin_jax import DataError, SamplerSettings, kramers_moyal, update_output_only
+from dtwin_jax import DataError, SamplerSettings, update_output_only
 from dtwin_jax.cli import main
 from dtwin_jax.io import write_nominal
 from dtwin_jax.library import parse_library
-from dtwin_jax.measurement import add_noise
 from dtwin_jax.models import systems
+from dtwin_jax.output_only import kramers_moyal
+from dtwin_jax.preprocess.measurement import add_noise
 
 FAST = SamplerSettings(num_chains=2, num_draws=600, num_burnin=300)
 
@@ -191,11 +192,11 @@ def test_update_runs_the_two_drift_passes_as_output_only_drift_stats_does():
     """update_output_only's drift statistics run as separate programs (the first pass's short
     run is the drift sampling's program): the same as the one pure function the sweeps run,
     on 30 records of which the first pass uses 19."""
-    from dtwin_jax.update.output_only import drift_statistics
-    from dtwin_jax.update.output_only_stats import (
+    from dtwin_jax.output_only.stats import (
         first_pass_rows,
         output_only_drift_stats,
     )
+    from dtwin_jax.output_only.update import drift_statistics
 
     ex, t, x = _ensemble("example1", records=30)
     nominal, lib, x = ex.system.nominal, parse_library("poly:2", 2, 0), jnp.asarray(x)
@@ -211,8 +212,8 @@ def test_update_runs_the_two_drift_passes_as_output_only_drift_stats_does():
 def test_noise_correction_margin_flags_noise_beyond_the_library():
     """Example 1, 100 records: the corrected Gram stays (nearly) definite at 5% noise and
     loses definiteness at 35% (where the sweep selects 15-28 spurious terms)."""
-    from dtwin_jax.update.output_only import MARGIN_WARN, margin_check
-    from dtwin_jax.update.output_only_stats import correction_margin
+    from dtwin_jax.output_only.stats import correction_margin
+    from dtwin_jax.output_only.update import MARGIN_WARN, margin_check
 
     ex = systems.example1().for_output_only()
     nominal = ex.system.nominal

@@ -13,7 +13,7 @@ from dtwin_jax.io.store import load_twin, save_twin
 from dtwin_jax.library import parse_library
 from dtwin_jax.models import systems, zoo
 from dtwin_jax.models.prediction import posterior_twins
-from dtwin_jax.update.output_only_accelerometers import increment_stats
+from dtwin_jax.output_only.accelerometers import increment_stats
 
 
 def _ambient(index: int, records: int, level: float = 0.03):

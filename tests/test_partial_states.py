@@ -1,5 +1,5 @@
 """Measurements of some of the states (x_names), input interpolation, F0, and the
-identification of a nominal linear model: dtwin_jax.estimate, systems.upsample."""
+identification of a nominal linear model: dtwin_jax.preprocess.estimate, systems.upsample."""
 
 import json
 
@@ -9,9 +9,9 @@ import pytest
 
 from dtwin_jax import SamplerSettings, simulate, update_input_output
 from dtwin_jax.errors import DataError
-from dtwin_jax.estimate import discretize
 from dtwin_jax.io import load_measurements, load_nominal, write_nominal
 from dtwin_jax.models.systems import LinearSecondOrder, PerturbedSystem, upsample
+from dtwin_jax.preprocess.estimate import discretize
 
 SHORT = SamplerSettings(num_chains=2, num_draws=500, num_burnin=300)
 
@@ -143,7 +143,7 @@ def test_cli_discovers_from_a_displacement_only_file_and_refuses_unknown_state_n
 
 
 def test_identify_linear_recovers_a_lightly_damped_system_from_displacement_at_nine_samples_per_period():
-    from dtwin_jax.estimate import identify_linear
+    from dtwin_jax.preprocess.estimate import identify_linear
 
     true = LinearSecondOrder.create([[1.0]], [[3.0]], [[900.0]], [[450.0]], F0=[12.0])
     rng = np.random.default_rng(0)

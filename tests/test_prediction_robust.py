@@ -16,7 +16,6 @@ from dtwin_jax.errors import DataError
 from dtwin_jax.io import write_nominal
 from dtwin_jax.io.store import load_twin, save_twin
 from dtwin_jax.library import parse_library
-from dtwin_jax.measurement import measure
 from dtwin_jax.models import systems, zoo
 from dtwin_jax.models.prediction import (
     PredictionWarning,
@@ -28,6 +27,7 @@ from dtwin_jax.models.prediction import (
     predict,
 )
 from dtwin_jax.models.systems import LinearSecondOrder
+from dtwin_jax.preprocess.measurement import measure
 
 SHORT = ["--chains", "2", "--draws", "300", "--burn-in", "150", "--quiet"]
 NOMINAL = dict(M=[[1.0]], C=[[2.0]], K=[[1000.0]], B=[[1.0]])  # 5 Hz, 3% damping
@@ -230,7 +230,7 @@ def test_constant_diffusion_output_only_twin_predicts():
 
 
 def test_failed_refinement_keeps_the_discover_result(friction_cli, tmp_path, monkeypatch, capsys):
-    import dtwin_jax.update.input_output as io_update
+    import dtwin_jax.input_output.update as io_update
 
     def boom(*args, **kwargs):
         raise RuntimeError("The maximum number of solver steps was reached.\nmore lines of traceback")
@@ -253,7 +253,7 @@ def test_failed_refinement_keeps_the_discover_result(friction_cli, tmp_path, mon
 
 def test_refine_on_a_friction_twin_finishes(friction_cli):
     """Output-error refinement of the sign(x2) twin: fixed steps, no chatter, refined."""
-    from dtwin_jax.update.output_error import refine_output_error
+    from dtwin_jax.input_output.output_error import refine_output_error
 
     tmp, _ = friction_cli
     result = load_twin(tmp / "twin")

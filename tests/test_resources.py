@@ -180,7 +180,7 @@ def test_available_memory_is_read():
 
 
 def _fail_with(monkeypatch, exc):
-    import dtwin_jax.update.input_output as io_update
+    import dtwin_jax.input_output.update as io_update
 
     def boom(*args, **kwargs):
         raise exc

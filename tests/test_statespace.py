@@ -4,9 +4,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import kramers_moyal, statespace
-from dtwin_jax.measurement import add_noise
 from dtwin_jax.models import systems
+from dtwin_jax.output_only import kramers_moyal, statespace
+from dtwin_jax.preprocess.measurement import add_noise
 
 
 def test_drift_step_matches_the_true_rate_and_a_fine_diffrax_solve():

@@ -8,13 +8,14 @@ import jax
 import numpy as np
 import pytest
 
-from dtwin_jax import sampler, studies, targets
+from dtwin_jax import sampler, studies
 from dtwin_jax.cli import main
-from dtwin_jax.denoise import auto_half_width
 from dtwin_jax.errors import DataError
+from dtwin_jax.input_output import targets
 from dtwin_jax.library import parse_library
-from dtwin_jax.measurement import measure
 from dtwin_jax.models import systems
+from dtwin_jax.preprocess.denoise import auto_half_width
+from dtwin_jax.preprocess.measurement import measure
 from dtwin_jax.update import SamplerSettings
 
 LEVELS = [0.0, 0.05, 0.45]

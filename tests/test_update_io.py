@@ -10,8 +10,8 @@ import pytest
 from predictive import check_degradation_forecast, check_input_output_prediction
 
 import dtwin_jax  # noqa: F401
-from dtwin_jax.measurement import measure
 from dtwin_jax.models import systems
+from dtwin_jax.preprocess.measurement import measure
 from dtwin_jax.update import SamplerSettings, update_input_output
 
 SETTINGS = SamplerSettings(num_chains=2, num_draws=1000, num_burnin=500)

@@ -1,4 +1,4 @@
-"""The weak (integral) form of framework 1: states without rates (dtwin_jax.weak_form)."""
+"""The weak (integral) form of framework 1: states without rates (dtwin_jax.preprocess.weak_form)."""
 
 import jax
 import numpy as np
@@ -6,15 +6,15 @@ import pytest
 
 from dtwin_jax import SamplerSettings, update_input_output
 from dtwin_jax.errors import DataError
-from dtwin_jax.measurement import measure
 from dtwin_jax.models import systems
-from dtwin_jax.update.sampling import resolve_library
-from dtwin_jax.weak_form import (
+from dtwin_jax.preprocess.measurement import measure
+from dtwin_jax.preprocess.weak_form import (
     derivative_terms,
     weak_input_output_stats,
     weak_windows,
     window_quadrature,
 )
+from dtwin_jax.update.sampling import resolve_library
 
 
 def test_window_quadrature_integrates_by_parts():

@@ -100,7 +100,7 @@ def load_measurements(path) -> dict:
     ``u_interpolation`` (absent: chosen from the input's spectrum) from ``.npz`` or ``.csv``.
     ``x`` may be absent when ``xdot`` is present (accelerometers alone). An extension of
     formats.md: ``reference`` (``.npz``, ``(N, r)`` or ``(R, N, r)``), a closed loop's
-    set-point, the instrument of :mod:`dtwin_jax.instruments`.
+    set-point, the instrument of :mod:`dtwin_jax.preprocess.instruments`.
 
     A CSV file holds one record with header ``t,`` then measured state names (all of
     ``x1..xm`` or a subset, which become ``x_names``) ``[,u1..un]``; columns ``xdot1..``

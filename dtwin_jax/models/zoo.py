@@ -81,9 +81,9 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from dtwin_jax.kramers_moyal import state_matrix
 from dtwin_jax.library import parse_library
 from dtwin_jax.models import systems
+from dtwin_jax.output_only.kramers_moyal import state_matrix
 
 __all__ = [
     "FAMILIES",

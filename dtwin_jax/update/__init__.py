@@ -1,18 +1,18 @@
-"""Updating a digital twin from measurements. Data flows one way:
+"""Updating a digital twin from measurements: the public entry points, and what both
+frameworks share. Data flows one way:
 
-    measurements (t, x, u, xdot)                      Records            data.check_records
-      -> states denoised or estimated, nominal removed                 input_output / output_only
-      -> targets and library -> sufficient statistics                  targets, output_only_stats
-      -> (+ the previous update's statistics: re-update)                lifecycle
-      -> spike-and-slab sampler, every equation in one call             sampling
-      -> posterior per equation -> updated twin                         result (UpdateResult.twin)
-      -> (optional: selected coefficients refined by output error)      output_error
+    measurements (t, x, u, xdot)                      data.check_records
+      -> states denoised or estimated, nominal removed  preprocess, input_output.update / output_only.update
+      -> targets and library -> sufficient statistics   input_output.targets, output_only.stats
+      -> (+ the previous update's statistics: re-update) update.lifecycle
+      -> spike-and-slab sampler, every equation in one call  update.sampling
+      -> posterior per equation -> updated twin         update.result (UpdateResult.twin)
+      -> (optional: coefficients refined by output error)  input_output.output_error
 
-Framework 1, :func:`update_input_output` (``input_output``): states, inputs and rates
-measured. Framework 2, :func:`update_output_only` (``output_only``): states only; drift by
-Kramers-Moyal targets, then diffusion by the Kalman likelihood (``output_only_stats``).
-Both return an :class:`UpdateResult` (``result``), which a later update takes as
-``previous`` (``lifecycle``) and :mod:`dtwin_jax.io.store` saves and loads.
+Framework 1, :func:`update_input_output` (:mod:`dtwin_jax.input_output`): states, inputs and
+rates measured. Framework 2, :func:`update_output_only` (:mod:`dtwin_jax.output_only`): the
+response alone. Both return an :class:`UpdateResult` (``result``), which a later update takes
+as ``previous`` (``lifecycle``) and :mod:`dtwin_jax.io.store` saves and loads.
 """
 
 import importlib
@@ -21,12 +21,12 @@ import importlib
 # need not import framework 2's modules.
 _PUBLIC = {
     "UpdatedTwin": "dtwin_jax.models.prediction",
-    "denoise_states": "dtwin_jax.update.input_output",
-    "update_input_output": "dtwin_jax.update.input_output",
-    "update_output_only": "dtwin_jax.update.output_only",
-    "OUTPUT_ONLY_LIBRARY": "dtwin_jax.update.output_only",
-    "DIFFUSION_LIBRARY": "dtwin_jax.update.output_only",
-    "refine_output_error": "dtwin_jax.update.output_error",
+    "denoise_states": "dtwin_jax.input_output.update",
+    "update_input_output": "dtwin_jax.input_output.update",
+    "update_output_only": "dtwin_jax.output_only.update",
+    "OUTPUT_ONLY_LIBRARY": "dtwin_jax.output_only.update",
+    "DIFFUSION_LIBRARY": "dtwin_jax.output_only.update",
+    "refine_output_error": "dtwin_jax.input_output.output_error",
     "SamplerSettings": "dtwin_jax.update.result",
     "UpdateResult": "dtwin_jax.update.result",
 }

@@ -1,16 +1,16 @@
 """The input-output regression on accelerometers alone: the weak rows at the anchored
-states (:mod:`dtwin_jax.weak_form_accelerometers`) and the widening of what the anchor's
-loop feeds back into itself (:func:`dtwin_jax.accelerometers.state_feedback`)."""
+states (:mod:`dtwin_jax.preprocess.weak_form_accelerometers`) and the widening of what the anchor's
+loop feeds back into itself (:func:`dtwin_jax.preprocess.accelerometers.state_feedback`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from dtwin_jax.accelerometers import state_feedback
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library, parse_library
 from dtwin_jax.models.systems import LinearSecondOrder
-from dtwin_jax.weak_form_accelerometers import (
+from dtwin_jax.preprocess.accelerometers import state_feedback
+from dtwin_jax.preprocess.weak_form_accelerometers import (
     accelerometer_weak_stats,
     constant_columns,
 )
@@ -45,13 +45,13 @@ def accelerometer_regression(nominal: LinearSecondOrder, lib: Library, dt: float
     - ``nominal``, ``lib``: the nominal model and the (reduced) library.
     - ``dt``: sample step, s.
     - ``a``: ``(R, N, d)`` accelerations; ``u``: ``(R, N, n)`` inputs (zeros: output-only).
-    - ``x``: ``(R, N, m)`` the states of :func:`~dtwin_jax.accelerometers.accelerometer_states`,
+    - ``x``: ``(R, N, m)`` the states of :func:`~dtwin_jax.preprocess.accelerometers.accelerometer_states`,
       ``states_info`` its info (``error_draws`` and ``coefficients`` are taken out of it).
     - ``loop_names``: the term names of the library the loop ran with.
     - ``interpolation``: the inputs' (``"held"`` or ``"bandlimited"``).
     **Returns:** ``(stats, info, feedback or None, warnings)``: the
     :class:`~dtwin_jax.sampler.SuffStats` of the velocity equations, the weak form's
-    description, :func:`~dtwin_jax.accelerometers.state_feedback`'s result, and warnings."""
+    description, :func:`~dtwin_jax.preprocess.accelerometers.state_feedback`'s result, and warnings."""
     draws, coef = states_info.pop("error_draws", None), states_info.pop("coefficients")
     if coef is not None:  # the loop's coefficients on the library as reduced since
         coef = coef[:, [list(loop_names).index(name) for name in lib.names]]

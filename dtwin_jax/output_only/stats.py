@@ -2,10 +2,10 @@
 sufficient statistics, shared by :func:`update_output_only` and the noise studies
 (:mod:`dtwin_jax.studies`).
 
-Drift: Kramers-Moyal targets (:mod:`dtwin_jax.kramers_moyal`) in two passes, the second
+Drift: Kramers-Moyal targets (:mod:`dtwin_jax.output_only.kramers_moyal`) in two passes, the second
 moving the regressors along a first sampled estimate (:func:`output_only_drift_stats`).
 Diffusion, given that drift: the Kalman likelihood's maximum and its EM targets
-(:mod:`dtwin_jax.statespace`), weighted to carry the likelihood's information
+(:mod:`dtwin_jax.output_only.statespace`), weighted to carry the likelihood's information
 (:func:`diffusion_statistics`).
 """
 
@@ -18,12 +18,13 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from dtwin_jax import kramers_moyal, sampler, statespace
+from dtwin_jax import sampler
 from dtwin_jax._compile import aot
 from dtwin_jax._compile.quick_compile import quick_jit
+from dtwin_jax.input_output.targets import equation_stats
 from dtwin_jax.library import Library
 from dtwin_jax.models.systems import LinearSecondOrder
-from dtwin_jax.targets import equation_stats
+from dtwin_jax.output_only import kramers_moyal, statespace
 from dtwin_jax.update.result import SamplerSettings
 from dtwin_jax.update.sampling import sampler_kwargs
 

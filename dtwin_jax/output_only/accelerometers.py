@@ -4,13 +4,13 @@ Nothing but the accelerations ``a`` of the degrees of freedom is measured; the f
 and unknown (the Ito diffusion of framework 2). An accelerometer's sample is the velocity's
 increment over its interval over ``dt``: the Kramers-Moyal target of framework 2, measured
 rather than differenced. The states come from the anchored smoother
-(:mod:`dtwin_jax.accelerometers`) with no input: the kinematic chains integrate the measured
+(:mod:`dtwin_jax.preprocess.accelerometers`) with no input: the kinematic chains integrate the measured
 accelerations, and the equation of motion anchors them below the first mode, its force the
 white one. Each row regresses a sample on the library at the state the drift predicts for it
 from the sample before (non-anticipating, as Ito's calculus needs; the increment's O(dt) term
 cancels, as in framework 2's moved regressors).
 
-The weak form of :mod:`dtwin_jax.weak_form_accelerometers` is not used for the drift here: its
+The weak form of :mod:`dtwin_jax.preprocess.weak_form_accelerometers` is not used for the drift here: its
 windows hold the white force both in the rows' error and in the states that the columns see
 (with the true states of zoo-0002, least squares took a spurious damping of +6.3 /s), and its
 ``chi''`` weighting leaves little of a damping force. Measured on zoo members 0-39 (10
@@ -32,28 +32,28 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax.accelerometers import (
+from dtwin_jax.collinearity import collinearity_checks
+from dtwin_jax.data import check_records, state_range
+from dtwin_jax.errors import DataError
+from dtwin_jax.input_output.accelerometers import without_constant_columns
+from dtwin_jax.library import Library
+from dtwin_jax.models.systems import LinearSecondOrder
+from dtwin_jax.output_only.stats import first_pass_settings
+from dtwin_jax.posterior import EquationPosterior
+from dtwin_jax.preprocess.accelerometers import (
     ERROR_DRAWS,
     accelerometer_layout,
     accelerometer_states,
     widened_draws,
 )
-from dtwin_jax.collinearity import collinearity_checks
-from dtwin_jax.data import check_records, state_range
-from dtwin_jax.errors import DataError
-from dtwin_jax.estimate import measured_index
-from dtwin_jax.library import Library
-from dtwin_jax.models.systems import LinearSecondOrder
-from dtwin_jax.posterior import EquationPosterior
+from dtwin_jax.preprocess.estimate import measured_index
+from dtwin_jax.preprocess.weak_form_accelerometers import accelerometer_weak_stats
 from dtwin_jax.progress import Stages
 from dtwin_jax.resources import check_update
 from dtwin_jax.sampler import SuffStats
-from dtwin_jax.update.accelerometer_regression import without_constant_columns
 from dtwin_jax.update.lifecycle import check_repeat, updated_history
-from dtwin_jax.update.output_only_stats import first_pass_settings
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 from dtwin_jax.update.sampling import numpy_stats, posteriors, sample_equations
-from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats
 
 __all__ = ["CONSTANT_DIFFUSION", "SPLIT_PASSES", "update_from_accelerometers", "increment_stats"]
 
@@ -70,7 +70,7 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
                                pip_threshold: float, settings: SamplerSettings, seed: int, progress: bool,
                                previous, forget: float, allow_repeat: bool) -> UpdateResult:
     """Discover the drift perturbation and the constant diffusion of ``nominal`` from
-    accelerometers alone (called by :func:`~dtwin_jax.update.output_only.update_output_only`).
+    accelerometers alone (called by :func:`~dtwin_jax.output_only.update.update_output_only`).
 
     **Arguments:**
 
@@ -82,7 +82,7 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
     - ``xdot_names``: the states of its columns (None: all ``m``).
     - ``lib``: the drift library (no inputs); a constant column is left out with a warning.
     - ``pip_threshold``, ``settings``, ``seed``, ``progress``, ``allow_repeat``: as
-      :func:`~dtwin_jax.update.output_only.update_output_only`.
+      :func:`~dtwin_jax.output_only.update.update_output_only`.
     - ``previous``, ``forget``: a re-update; not taken yet (refused in one line).
 
     **Returns:** an :class:`UpdateResult` of mode ``"output-only"``: one ``drift`` equation per
@@ -212,7 +212,7 @@ def _selected_fit(stats: SuffStats, index) -> np.ndarray:
 
 def _errors_in_variables(nominal, lib, dt, a, x, coef, draws) -> dict | None:
     """The spread of the selected terms' fit over draws ``(S, R, N, m)`` of the states'
-    estimation error, for :func:`~dtwin_jax.accelerometers.widened_draws` (no feedback gain):
+    estimation error, for :func:`~dtwin_jax.preprocess.accelerometers.widened_draws` (no feedback gain):
     None when nothing is selected or no draws."""
     if coef is None or draws is None:
         return None

@@ -13,10 +13,10 @@ import jax
 import jax.numpy as jnp
 
 from dtwin_jax import sampler
-from dtwin_jax.denoise import input_noise_variance, kinematic_smoother
 from dtwin_jax.library import Library
 from dtwin_jax.linalg import mass_solve
 from dtwin_jax.models.systems import LinearSecondOrder
+from dtwin_jax.preprocess.denoise import input_noise_variance, kinematic_smoother
 
 __all__ = [
     "input_output_targets",

@@ -1,8 +1,8 @@
 """Framework 2 (output-only, the paper's Section 4.2): measured states only. The drift
-perturbation comes from Kramers-Moyal targets (:mod:`dtwin_jax.kramers_moyal`), then the
+perturbation comes from Kramers-Moyal targets (:mod:`dtwin_jax.output_only.kramers_moyal`), then the
 diffusion of every velocity from the Kalman likelihood given that drift
-(:mod:`dtwin_jax.statespace`), whose EM targets are sampled by the same kernel. The
-numerics are in :mod:`dtwin_jax.update.output_only_stats`; this module orchestrates them
+(:mod:`dtwin_jax.output_only.statespace`), whose EM targets are sampled by the same kernel. The
+numerics are in :mod:`dtwin_jax.output_only.stats`; this module orchestrates them
 and checks the result (whitened innovations, the noise correction's margin)."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import kramers_moyal, sampler, statespace
+from dtwin_jax import sampler
 from dtwin_jax._compile import aot
 from dtwin_jax._compile.ahead import Ahead
 from dtwin_jax.checks import residual_checks
@@ -22,6 +22,15 @@ from dtwin_jax.data import check_records, state_range
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, check_columns, parse_library
 from dtwin_jax.models.systems import LinearSecondOrder
+from dtwin_jax.output_only import kramers_moyal, statespace
+from dtwin_jax.output_only.stats import (
+    brownian_variance,
+    diffusion_statistics,
+    drift_pass,
+    first_pass_estimate,
+    first_pass_rows,
+    first_pass_settings,
+)
 from dtwin_jax.progress import Stages
 from dtwin_jax.resources import check_sampler, check_update
 from dtwin_jax.sampler import SuffStats
@@ -30,14 +39,6 @@ from dtwin_jax.update.lifecycle import (
     check_repeat,
     updated_history,
     with_previous,
-)
-from dtwin_jax.update.output_only_stats import (
-    brownian_variance,
-    diffusion_statistics,
-    drift_pass,
-    first_pass_estimate,
-    first_pass_rows,
-    first_pass_settings,
 )
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 from dtwin_jax.update.sampling import (
@@ -82,7 +83,7 @@ def update_output_only(
     - ``x``: ``(N, m)`` one record (a structure in service) or ``(R, N, m)`` an ensemble of
       independent records, every state measured; pooled into one regression. None with
       ``xdot``: accelerometers alone (ambient vibration,
-      :func:`~dtwin_jax.update.output_only_accelerometers.update_from_accelerometers`: a
+      :func:`~dtwin_jax.output_only.accelerometers.update_from_accelerometers`: a
       constant diffusion, no re-update yet).
     - ``xdot``, ``xdot_names``: the accelerometers' samples and their states (the rates of
       the velocity states), with ``x=None``; beside ``x`` they are refused in one line.
@@ -90,7 +91,7 @@ def update_output_only(
       :data:`OUTPUT_ONLY_LIBRARY`).
     - ``diffusion_library``: the diffusion's, likewise (default :data:`DIFFUSION_LIBRARY`).
     - ``pip_threshold``, ``settings``, ``seed``, ``progress``: as
-      :func:`~dtwin_jax.update.input_output.update_input_output`.
+      :func:`~dtwin_jax.input_output.update.update_input_output`.
     - ``previous``, ``forget``, ``allow_repeat``: a re-update, as there (drift and diffusion).
 
     **Returns:** an :class:`UpdateResult` of mode ``"output-only"``: one ``drift`` equation
@@ -99,7 +100,7 @@ def update_output_only(
     """
     start = time.perf_counter()
     if x is None:  # accelerometers alone: ambient vibration
-        from dtwin_jax.update.output_only_accelerometers import (
+        from dtwin_jax.output_only.accelerometers import (
             update_from_accelerometers,
         )
 
@@ -250,7 +251,7 @@ MARGIN_WARN = -0.01
 
 def margin_check(margin: float) -> dict:
     """The result's check of the noise correction: ``margin`` from
-    :func:`~dtwin_jax.update.output_only_stats.correction_margin`,
+    :func:`~dtwin_jax.output_only.stats.correction_margin`,
     a warning below :data:`MARGIN_WARN`."""
     ok = margin >= MARGIN_WARN
     warning = (

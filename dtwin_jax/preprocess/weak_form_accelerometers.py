@@ -11,14 +11,14 @@ the test function:
 
 so the nominal model's part of every row is the measured acceleration through three known
 filters, exactly, and a constant force (nothing an accelerometer sees) drops out. Only the
-library terms see the estimated states (:mod:`dtwin_jax.accelerometers`), through ``chi''``,
+library terms see the estimated states (:mod:`dtwin_jax.preprocess.accelerometers`), through ``chi''``,
 which weighs a frequency ``w`` by ``w^2``: the integrated noise of the states (``1 / w^2``)
 comes out flat.
 
 The rows' covariance (one per equation) has three parts: the accelerometers' white noise
 through the three filters; a white equation error of unknown size (the force sensor's noise,
 process noise, what the library misses), by restricted maximum likelihood as in
-:mod:`dtwin_jax.weak_form`; and, when draws of the states' estimation error are given, the
+:mod:`dtwin_jax.preprocess.weak_form`; and, when draws of the states' estimation error are given, the
 error it puts into the selected terms (errors in variables), so that a coefficient of a term
 of poorly known states gets the wider interval it should.
 """
@@ -30,10 +30,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import sampler
-from dtwin_jax.denoise import auto_half_width, noise_std
 from dtwin_jax.library import Library
 from dtwin_jax.models.systems import LinearSecondOrder
-from dtwin_jax.weak_form import (
+from dtwin_jax.preprocess.denoise import auto_half_width, noise_std
+from dtwin_jax.preprocess.weak_form import (
     TEST_POWER,
     bump_functions,
     effective_share,

@@ -31,7 +31,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax.errors import DataError
-from dtwin_jax.kalman import kalman_filter, newton_log_variances, rts_smoother
 from dtwin_jax.linalg import expm, mass_solve
 from dtwin_jax.models.systems import (
     UPSAMPLE,
@@ -40,6 +39,11 @@ from dtwin_jax.models.systems import (
     real_array,
     resolve_interpolation,
     upsample,
+)
+from dtwin_jax.preprocess.kalman import (
+    kalman_filter,
+    newton_log_variances,
+    rts_smoother,
 )
 
 __all__ = ["discretize", "identify_linear", "measured_index", "state_smoother"]

@@ -6,7 +6,7 @@ integration drifts (2 s at 1 kHz and 5% noise: the integrated noise exceeds the
 displacement). The low frequencies are anchored by the equation of motion instead. Each
 degree of freedom is the kinematic chain ``dq/dt = v, dv/dt = a`` driven by the measured
 acceleration (held input and trapezoidal smooth part, as
-:func:`dtwin_jax.denoise.kinematic_smoother`), and every sample adds the pseudo-measurement
+:func:`dtwin_jax.preprocess.denoise.kinematic_smoother`), and every sample adds the pseudo-measurement
 
     K q + C v - M h(q, v, u) = B u + F0 - M a          (one row per degree of freedom)
 
@@ -18,7 +18,7 @@ anchor's noise is raised so that it takes over only below the lowest natural fre
 The loop (:func:`accelerometer_states`) starts from the equivalent linear model (the nominal
 plus the linear correction that fits the accelerations best, found without any state
 estimate), then alternates a short sampler run on the weak-form statistics at the states
-(:mod:`dtwin_jax.weak_form_accelerometers`: the nominal part of every row exact, whatever the
+(:mod:`dtwin_jax.preprocess.weak_form_accelerometers`: the nominal part of every row exact, whatever the
 states) with a Gauss-Newton step of the smoother. The final regression is that weak form at
 the final states; draws of the states' estimation error (Durbin and Koopman's simulation
 smoother) put their effect on the selected terms into its row covariance.
@@ -28,7 +28,7 @@ high-passed pointwise regression: 60% exact support, 41% HDI coverage on 20 memb
 README's sensors table.
 
 Output-only (no force measured) from accelerometers uses the same states with the force white and
-unknown (:mod:`dtwin_jax.update.output_only_accelerometers`).
+unknown (:mod:`dtwin_jax.output_only.accelerometers`).
 """
 
 from __future__ import annotations
@@ -40,10 +40,10 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.linalg import sqrtm
 
-from dtwin_jax.denoise import auto_half_width, noise_std
 from dtwin_jax.errors import DataError
-from dtwin_jax.kalman import kalman_filter, rts_smoother
 from dtwin_jax.models.systems import LinearSecondOrder
+from dtwin_jax.preprocess.denoise import auto_half_width, noise_std
+from dtwin_jax.preprocess.kalman import kalman_filter, rts_smoother
 
 __all__ = ["CROSSOVER", "ERROR_DRAWS", "MAX_FEEDBACK", "accelerometer_layout", "check_accelerometer_layout",
            "sampler_selection", "anchored_smoother", "accelerometer_states", "state_feedback",
@@ -110,8 +110,8 @@ def accelerometer_layout(nominal: LinearSecondOrder, xdot, xdot_names, u, refine
 
     ``(x (..., N, 0), x_names [])``. Raises a one-line :class:`DataError` naming the missing
     measurement (see :func:`check_accelerometer_layout`)."""
-    from dtwin_jax.estimate import measured_index
     from dtwin_jax.models.systems import real_array
+    from dtwin_jax.preprocess.estimate import measured_index
 
     if xdot is None:
         raise DataError("no measurement of the states: give 'x' (states) or 'xdot' (accelerations)")
@@ -125,7 +125,7 @@ def accelerometer_layout(nominal: LinearSecondOrder, xdot, xdot_names, u, refine
 def _drive(nominal: LinearSecondOrder, a, u):
     """The kinematic chains' known input per step ``(R, N-1, 2d)``: the double and single
     integrals over the step of ``a (R, N, d)``, its input part held (``u (R, N, n)``, or None)
-    and its smooth part trapezoidal (as :func:`dtwin_jax.denoise.kinematic_smoother`)."""
+    and its smooth part trapezoidal (as :func:`dtwin_jax.preprocess.denoise.kinematic_smoother`)."""
     held = np.zeros_like(a) if u is None else np.linalg.solve(np.asarray(nominal.M), np.asarray(nominal.B) @ np.moveaxis(u, -1, -2)).swapaxes(-1, -2)
     smooth = a - held
     s0, s1, h = smooth[:, :-1], smooth[:, 1:], held[:, :-1]
@@ -302,8 +302,8 @@ def accelerometer_states(nominal: LinearSecondOrder, dt: float, xdot, xdot_index
     the measured accelerations and whose displacement rows are the estimated velocities (or
     the measured ones); and a dict saying how (method, iterations, the terms in the anchor,
     noise levels; ``info["error_draws"] (S, R, N, m)`` and ``info["coefficients"] (q, K)``
-    for :func:`~dtwin_jax.weak_form_accelerometers.accelerometer_weak_stats`)."""
-    from dtwin_jax.weak_form_accelerometers import equivalent_linear
+    for :func:`~dtwin_jax.preprocess.weak_form_accelerometers.accelerometer_weak_stats`)."""
+    from dtwin_jax.preprocess.weak_form_accelerometers import equivalent_linear
 
     d = nominal.d
     xdot = np.asarray(xdot, dtype=np.float64)
@@ -383,12 +383,12 @@ def sampler_selection(nominal: LinearSecondOrder, dt: float, a, lib, u, settings
     inclusion probability above 1/2 (the posterior mean with zeros counted spreads weight over
     a large library's look-alikes, ``x1**6`` and the like, whose linearization threw the
     loop off) in a short sampler run
-    (:func:`~dtwin_jax.update.output_only_stats.first_pass_settings`) on the weak-form
+    (:func:`~dtwin_jax.output_only.stats.first_pass_settings`) on the weak-form
     statistics of accelerations ``a (R, N, d)`` and inputs ``u (R, N, n)`` at states
     ``x (R, N, m)``."""
-    from dtwin_jax.update.output_only_stats import first_pass_settings
+    from dtwin_jax.output_only.stats import first_pass_settings
+    from dtwin_jax.preprocess.weak_form_accelerometers import accelerometer_weak_stats
     from dtwin_jax.update.sampling import posteriors, sample_equations
-    from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats
 
     names = [nominal.state_names[i] for i in nominal.regressed_index]
 
@@ -403,7 +403,7 @@ def sampler_selection(nominal: LinearSecondOrder, dt: float, a, lib, u, settings
 def _selected_fit(nominal, lib, dt, a, u, x, index, interpolation) -> np.ndarray:
     """Generalized least squares of the selected terms ``index [(equation, column)]`` on the
     weak rows at states ``x``, stacked in ``index`` order."""
-    from dtwin_jax.weak_form_accelerometers import accelerometer_weak_stats
+    from dtwin_jax.preprocess.weak_form_accelerometers import accelerometer_weak_stats
 
     stats, _ = accelerometer_weak_stats(nominal, lib, dt, a, u, x, interpolation=interpolation, equation_error=False)
     gram, xty = np.asarray(stats.gram), np.asarray(stats.xty)

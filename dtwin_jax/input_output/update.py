@@ -1,7 +1,7 @@
 """Framework 1 (input-output, the paper's Section 4.1): measured states ``x``, inputs ``u``
 and rates ``xdot`` (or rates estimated from ``x``). The states are denoised (the kinematic
 RTS smoother with measured rates, else Savitzky-Golay) or, with some states unmeasured,
-estimated with their rates by the state-space smoother of :mod:`dtwin_jax.estimate`; the
+estimated with their rates by the state-space smoother of :mod:`dtwin_jax.preprocess.estimate`; the
 nominal rates are removed to give the targets ``xdot - f(x, u)``, whose statistics on the
 library go to the sampler, every regressed equation in one vmapped call."""
 
@@ -15,56 +15,59 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import sampler
-from dtwin_jax.accelerometers import (
-    accelerometer_layout,
-    accelerometer_states,
-    sampler_selection,
-    widened_draws,
-)
 from dtwin_jax.checks import residual_checks
 from dtwin_jax.collinearity import collinearity_checks, twin_coefficients
 from dtwin_jax.data import Records, check_records, check_signal, state_range
-from dtwin_jax.denoise import (
-    auto_half_width,
-    kinematic_smoother,
-    savgol_design_ok,
-    savgol_states,
-)
 from dtwin_jax.errors import DataError
-from dtwin_jax.estimate import measured_index, state_smoother
+from dtwin_jax.input_output.accelerometers import (
+    accelerometer_regression,
+    without_constant_columns,
+)
+from dtwin_jax.input_output.output_error import refine_output_error
+from dtwin_jax.input_output.targets import (
+    input_output_targets,
+    smoothed_input_output_stats,
+)
 from dtwin_jax.library import Library, check_columns, without_degenerate_columns
-from dtwin_jax.measurement import smooth
 from dtwin_jax.model_error import training_model_error
 from dtwin_jax.models.systems import (
     LinearSecondOrder,
     check_interpolation,
     resolve_interpolation,
 )
+from dtwin_jax.preprocess.accelerometers import (
+    accelerometer_layout,
+    accelerometer_states,
+    sampler_selection,
+    widened_draws,
+)
+from dtwin_jax.preprocess.denoise import (
+    auto_half_width,
+    kinematic_smoother,
+    savgol_design_ok,
+    savgol_states,
+)
+from dtwin_jax.preprocess.estimate import measured_index, state_smoother
+from dtwin_jax.preprocess.measurement import smooth
+from dtwin_jax.preprocess.weak_form import (
+    weak_input_output_stats,
+    weak_layout_supported,
+    weak_window_fits,
+)
 from dtwin_jax.progress import Stages
 from dtwin_jax.resources import check_update
-from dtwin_jax.targets import input_output_targets, smoothed_input_output_stats
-from dtwin_jax.update.accelerometer_regression import (
-    accelerometer_regression,
-    without_constant_columns,
-)
 from dtwin_jax.update.lifecycle import (
     check_previous,
     check_repeat,
     updated_history,
     with_previous,
 )
-from dtwin_jax.update.output_error import refine_output_error
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 from dtwin_jax.update.sampling import (
     numpy_stats,
     posteriors,
     resolve_library,
     sample_equations,
-)
-from dtwin_jax.weak_form import (
-    weak_input_output_stats,
-    weak_layout_supported,
-    weak_window_fits,
 )
 
 __all__ = ["update_input_output", "denoise_states"]
@@ -94,10 +97,10 @@ def update_input_output(
     """Discover the perturbation of ``nominal`` from input-output measurements.
 
     The route follows the sensors: with every state measured and no rates, the weak form
-    (:mod:`dtwin_jax.weak_form`: nothing differentiated); with rates measured, the kinematic
+    (:mod:`dtwin_jax.preprocess.weak_form`: nothing differentiated); with rates measured, the kinematic
     smoother; with accelerometers alone, the anchored states and their weak form
-    (:mod:`dtwin_jax.accelerometers`); with some states unmeasured, or a few samples per
-    period, the state-space smoother of :mod:`dtwin_jax.estimate`. The layout and route are
+    (:mod:`dtwin_jax.preprocess.accelerometers`); with some states unmeasured, or a few samples per
+    period, the state-space smoother of :mod:`dtwin_jax.preprocess.estimate`. The layout and route are
     named in ``preprocessing["layout"]`` and ``["smoothing"]``.
 
     **Arguments:**
@@ -134,7 +137,7 @@ def update_input_output(
     - ``reference``: ``(N,)``, ``(N, r)`` or ``(R, N, r)`` the set-point of a closed loop, or
       None. The estimator assumes the equation error white and independent of the columns;
       under feedback an unmeasured force reaches the input and that fails. Given, the
-      reference is the instrument of a two-stage least squares (:mod:`dtwin_jax.instruments`;
+      reference is the instrument of a two-stage least squares (:mod:`dtwin_jax.preprocess.instruments`;
       the weak form's route only).
 
     **Returns:** an :class:`UpdateResult` of mode ``"input-output"``: one drift equation per
@@ -144,7 +147,7 @@ def update_input_output(
     start = time.perf_counter()
     if interpolation != "auto":
         check_interpolation(interpolation)  # refuse a bad name before the data checks
-    accelerometers = x is None  # accelerometers alone (dtwin_jax.accelerometers)
+    accelerometers = x is None  # accelerometers alone (dtwin_jax.preprocess.accelerometers)
     if accelerometers:
         x, x_names = accelerometer_layout(nominal, xdot, xdot_names, u, refine)
     x_index = measured_index(x_names, nominal)

@@ -31,9 +31,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax.kalman import Filtered, kalman_filter, rts_smoother
 from dtwin_jax.library import Library, parse_library
 from dtwin_jax.models.systems import LinearSecondOrder
+from dtwin_jax.preprocess.kalman import Filtered, kalman_filter, rts_smoother
 
 __all__ = [
     "DriftStep",

@@ -24,15 +24,19 @@ import jax
 import jax.numpy as jnp
 
 from dtwin_jax._compile import aot
-from dtwin_jax.kalman import kalman_filter, newton_log_variances, rts_smoother
 from dtwin_jax.linalg import mass_solve
-from dtwin_jax.measurement import (
+from dtwin_jax.models.systems import LinearSecondOrder
+from dtwin_jax.preprocess.kalman import (
+    kalman_filter,
+    newton_log_variances,
+    rts_smoother,
+)
+from dtwin_jax.preprocess.measurement import (
     highest_natural_frequency_hz,
     savgol_coefficients,
     smooth,
     smoothing_half_width,
 )
-from dtwin_jax.models.systems import LinearSecondOrder
 
 __all__ = ["savgol_design_ok", "auto_half_width", "noise_std", "savgol_states", "kinematic_smoother", "input_noise_variance"]
 

@@ -57,7 +57,7 @@ def instrumented_stats(Y, L, Z, cov) -> sampler.SuffStats:
 
     **Returns:** ``SuffStats`` of the whitened columns projected on the whitened instruments:
     ``gram = L' P L``, ``xty = L' P y`` (``P`` the projection); ``yty``, ``n`` as
-    :func:`~dtwin_jax.weak_form.weak_stats`. The sampler's residual ``y - P L theta`` then
+    :func:`~dtwin_jax.preprocess.weak_form.weak_stats`. The sampler's residual ``y - P L theta`` then
     holds what the instruments do not explain: wider intervals, not narrower."""
 
     from scipy.linalg import solve_triangular

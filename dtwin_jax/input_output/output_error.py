@@ -26,9 +26,9 @@ import numpy as np
 
 from dtwin_jax.data import check_records
 from dtwin_jax.errors import DataError
-from dtwin_jax.estimate import measured_index
 from dtwin_jax.models.prediction import fixed_substeps, is_nonsmooth
 from dtwin_jax.models.systems import simulate
+from dtwin_jax.preprocess.estimate import measured_index
 
 __all__ = ["refine_output_error"]
 

@@ -26,21 +26,21 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import sampler
-from dtwin_jax.denoise import (
+from dtwin_jax.errors import DataError
+from dtwin_jax.library import Library
+from dtwin_jax.models.systems import LinearSecondOrder
+from dtwin_jax.preprocess.denoise import (
     auto_half_width,
     noise_std,
     savgol_design_ok,
     savgol_states,
 )
-from dtwin_jax.errors import DataError
-from dtwin_jax.instruments import instrumented_stats, reference_fit
-from dtwin_jax.library import Library
-from dtwin_jax.measurement import (
+from dtwin_jax.preprocess.instruments import instrumented_stats, reference_fit
+from dtwin_jax.preprocess.measurement import (
     highest_natural_frequency_hz,
     savgol_coefficients,
     smooth,
 )
-from dtwin_jax.models.systems import LinearSecondOrder
 
 __all__ = ["weak_windows", "weak_window_fits", "window_quadrature", "weak_layout_supported", "weak_stats",
            "weak_input_output_stats", "derivative_terms", "reml_weight", "effective_share", "bump_functions",
@@ -325,7 +325,7 @@ def _library_states(nominal, x, x_index, u, dt, hw, noise_var, interpolation):
     if not missing:
         return full, spread, None
     if not savgol_design_ok(nominal, dt):
-        from dtwin_jax.estimate import state_smoother
+        from dtwin_jax.preprocess.estimate import state_smoother
 
         smoothed, _, _ = state_smoother(nominal, dt, x, x_index, u, interpolation=interpolation)
         for _, vi in missing:
@@ -359,7 +359,7 @@ def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *
     - ``equation_error``: add a white equation error to the rows' covariance, its size by
       restricted maximum likelihood (False: measurement noise only).
     - ``reference``: ``(R, N, r)`` a closed loop's reference signal, or None; given, it is the
-      instrument of a two-stage least squares (:mod:`dtwin_jax.instruments`).
+      instrument of a two-stage least squares (:mod:`dtwin_jax.preprocess.instruments`).
 
     **Returns:** ``(SuffStats`` batched over the regressed equations``, description dict)``.
     """

@@ -7,8 +7,8 @@ states `s (S,)`, measurements `z (p,)`. `F`, `c`, `Q` may be one array for every
 one per step (a leading axis `N-1`); `e` one per sample. The measurement noise is
 independent across channels (`r` diagonal), so the update takes one channel at a time:
 scalar innovations, no matrix factorisation, several times faster batched on a CPU.
-Users: the partial-state smoother (:mod:`dtwin_jax.estimate`), the kinematic smoother
-(:mod:`dtwin_jax.denoise`) and the diffusion likelihood (:mod:`dtwin_jax.statespace`).
+Users: the partial-state smoother (:mod:`dtwin_jax.preprocess.estimate`), the kinematic smoother
+(:mod:`dtwin_jax.preprocess.denoise`) and the diffusion likelihood (:mod:`dtwin_jax.output_only.statespace`).
 """
 
 from __future__ import annotations

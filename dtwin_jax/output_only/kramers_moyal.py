@@ -25,7 +25,7 @@ is removed. White noise adds `2 s^2 / dt` to it, 38 times the diffusion itself f
 at 5% noise, so raw squared increments are useless. Here the increments are pre-averaged over
 a triangular window of `K ~ sqrt(48 s^2 / (Gamma dt))` samples (Jacod et al. 2009), which
 balances signal and noise, and the known noise part is subtracted. That is a fast first
-guess; the diffusion itself is the likelihood maximum of :mod:`dtwin_jax.statespace`.
+guess; the diffusion itself is the likelihood maximum of :mod:`dtwin_jax.output_only.statespace`.
 
 The noise variances `s_j^2` come from the data: `Var(X_{k+L} - X_k) = 2 s^2 + L Gamma dt +
 L^2 D` for lags `L = 1, 2, 3` cancels the diffusion `Gamma` and the drift `D`.
