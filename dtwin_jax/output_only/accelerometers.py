@@ -44,6 +44,7 @@ from dtwin_jax.preprocess.accelerometers import (
     ERROR_DRAWS,
     accelerometer_layout,
     accelerometer_states,
+    selected_least_squares,
     widened_draws,
 )
 from dtwin_jax.preprocess.estimate import measured_index
@@ -115,7 +116,7 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
         return np.stack([e.coefficients for e in posteriors(trace, regressed, "drift", lib.names, 0.5)])
 
     def refit(xs, index):  # the settled support's least squares on the increments
-        return _selected_fit(increment_stats(nominal, lib, dt, a, xs), index)
+        return selected_least_squares(increment_stats(nominal, lib, dt, a, xs), index)
 
     stages = Stages(progress, 3, "output-only update (accelerometers)")
     with stages("states and the sensor / force split"):
@@ -199,17 +200,6 @@ def increment_stats(nominal: LinearSecondOrder, lib: Library, dt: float, a, x) -
     return SuffStats(np.stack([L.T @ L] * d), (L.T @ y).T, (y * y).sum(axis=0), np.full(d, float(L.shape[0])))
 
 
-def _selected_fit(stats: SuffStats, index) -> np.ndarray:
-    """Least squares of the terms ``index [(equation, column)]`` from ``stats``, in its order."""
-    gram, xty = np.asarray(stats.gram), np.asarray(stats.xty)
-    out = np.zeros(len(index))
-    for e in sorted({e for e, _ in index}):
-        rows = [j for j, (ee, _) in enumerate(index) if ee == e]
-        ks = [index[j][1] for j in rows]
-        out[rows] = np.linalg.lstsq(gram[e][np.ix_(ks, ks)], xty[e][ks], rcond=None)[0]
-    return out
-
-
 def _errors_in_variables(nominal, lib, dt, a, x, coef, draws) -> dict | None:
     """The spread of the selected terms' fit over draws ``(S, R, N, m)`` of the states'
     estimation error, for :func:`~dtwin_jax.preprocess.accelerometers.widened_draws` (no feedback gain):
@@ -219,7 +209,7 @@ def _errors_in_variables(nominal, lib, dt, a, x, coef, draws) -> dict | None:
     index = [(e, int(k)) for e in range(coef.shape[0]) for k in np.flatnonzero(coef[e])]
     if not index:
         return None
-    fits = np.array([_selected_fit(increment_stats(nominal, lib, dt, a, x + draw), index) for draw in draws])
+    fits = np.array([selected_least_squares(increment_stats(nominal, lib, dt, a, x + draw), index) for draw in draws])
     return {"index": index, "gain": np.eye(len(index)), "extra": np.atleast_2d(np.cov(fits.T))}
 
 

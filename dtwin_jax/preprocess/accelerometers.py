@@ -46,7 +46,7 @@ from dtwin_jax.preprocess.denoise import auto_half_width, noise_std
 from dtwin_jax.preprocess.kalman import kalman_filter, rts_smoother
 
 __all__ = ["CROSSOVER", "ERROR_DRAWS", "MAX_FEEDBACK", "accelerometer_layout", "check_accelerometer_layout",
-           "sampler_selection", "anchored_smoother", "accelerometer_states", "state_feedback",
+           "sampler_selection", "selected_least_squares", "anchored_smoother", "accelerometer_states", "state_feedback",
            "widened_draws"]
 
 # The anchor and the integrated accelerations cross over at the lowest natural frequency over
@@ -406,6 +406,12 @@ def _selected_fit(nominal, lib, dt, a, u, x, index, interpolation) -> np.ndarray
     from dtwin_jax.preprocess.weak_form_accelerometers import accelerometer_weak_stats
 
     stats, _ = accelerometer_weak_stats(nominal, lib, dt, a, u, x, interpolation=interpolation, equation_error=False)
+    return selected_least_squares(stats, index)
+
+
+def selected_least_squares(stats, index) -> np.ndarray:
+    """Least squares of the terms ``index [(equation, column)]`` from batched statistics
+    ``stats`` (:class:`~dtwin_jax.sampler.SuffStats`), stacked in ``index`` order."""
     gram, xty = np.asarray(stats.gram), np.asarray(stats.xty)
     out = np.zeros(len(index))
     for e in sorted({e for e, _ in index}):
