@@ -173,9 +173,6 @@ def update_input_output(
         raise DataError("smoothing='weak' needs every displacement and extra state measured and no measured rates")
     if reference is not None:
         reference = check_signal("reference", reference, rec.t.size, rec.x.shape[0])
-        if not weak_ok or smoothing not in ("auto", "weak"):
-            raise DataError("a 'reference' instrument needs the weak form: every displacement measured, no rates, "
-                            "smoothing auto or weak")
     # At a few samples per period the weak form's sums are exact for a band-limited input's
     # response only: a held input's steps alias (a 9-samples-per-period Duffing under held
     # white noise: free run 68% off, against 7% by the state-space smoother).
@@ -184,9 +181,10 @@ def update_input_output(
         # benchmarks/weak_form.py: 0.64% vs 3.15% median cubic error at 5% noise (states);
         # benchmarks/zoo.py --layout displacement: the state-space route found nothing.
         smoothing = "weak"
-    if reference is not None and smoothing != "weak":
-        raise DataError("a 'reference' instrument needs the weak form, which these data cannot use (too few samples "
-                        "per period or a record shorter than one window)")
+    if reference is not None and smoothing != "weak":  # the instrument enters the weak rows only
+        why = ("every displacement measured, no rates, smoothing auto or weak" if not weak_ok or smoothing != "auto"
+               else "these data cannot use it (too few samples per period or a record shorter than one window)")
+        raise DataError(f"a 'reference' instrument needs the weak form: {why}")
     warnings = []
     if smoothing == "auto" and rec.xdot is None and not savgol_design_ok(nominal, rec.dt):
         warnings.append(

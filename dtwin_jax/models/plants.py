@@ -65,14 +65,21 @@ def stage_nominal(params: StageParams = StageParams()) -> LinearSecondOrder:
     return LinearSecondOrder.create([[params.mass]], [[params.viscous]], [[0.0]], [[1.0]])
 
 
+def _sines(key, freqs, t):
+    """Sinusoids at ``freqs (F,)`` Hz on ``t (N,)``: random phases, amplitudes in [1/2, 1).
+    Returns ``(waves (N, F), phases (F,), amplitudes (F,))``."""
+    k1, k2 = jax.random.split(key)
+    phases = jax.random.uniform(k1, freqs.shape, maxval=2 * jnp.pi)
+    amplitudes = jax.random.uniform(k2, freqs.shape, minval=0.5, maxval=1.0)
+    return jnp.sin(2 * jnp.pi * freqs * t[:, None] + phases), phases, amplitudes
+
+
 def _reference(key, t, params: StageParams):
     """A smooth random reference: `centre` plus a sum of 8 sinusoids up to `bandwidth` Hz
     with random phases, scaled to `amplitude` peak, faded in over 1 s (a raised cosine)."""
-    k1, k2 = jax.random.split(key)
     freqs = params.bandwidth * jnp.linspace(0.1, 1.0, 8)
-    phases = jax.random.uniform(k1, (8,), maxval=2 * jnp.pi)
-    weights = jax.random.uniform(k2, (8,), minval=0.5, maxval=1.0) / freqs  # smoother at high f
-    r = jnp.sum(weights * (jnp.sin(2 * jnp.pi * freqs * t[:, None] + phases) - jnp.sin(phases)), axis=1)
+    waves, phases, amplitudes = _sines(key, freqs, t)
+    r = jnp.sum(amplitudes / freqs * (waves - jnp.sin(phases)), axis=1)  # smoother at high f
     ramp = jnp.where(t < 1.0, 0.5 - 0.5 * jnp.cos(jnp.pi * jnp.minimum(t, 1.0)), 1.0)
     return params.centre + params.amplitude * ramp * r / jnp.max(jnp.abs(r))
 
@@ -80,11 +87,8 @@ def _reference(key, t, params: StageParams):
 def _disturbance(key, t, params: StageParams):
     """A random force of std `disturbance` N: 16 sinusoids up to `disturbance_bandwidth` Hz
     with random phases and amplitudes."""
-    k1, k2 = jax.random.split(key)
-    freqs = params.disturbance_bandwidth * jnp.linspace(1.0 / 16, 1.0, 16)
-    phases = jax.random.uniform(k1, (16,), maxval=2 * jnp.pi)
-    weights = jax.random.uniform(k2, (16,), minval=0.5, maxval=1.0)
-    d = jnp.sum(weights * jnp.sin(2 * jnp.pi * freqs * t[:, None] + phases), axis=1)
+    waves, _, amplitudes = _sines(key, params.disturbance_bandwidth * jnp.linspace(1.0 / 16, 1.0, 16), t)
+    d = jnp.sum(amplitudes * waves, axis=1)
     return params.disturbance * d / jnp.std(d)
 
 

@@ -52,7 +52,7 @@ from dtwin_jax.preprocess.weak_form_accelerometers import accelerometer_weak_sta
 from dtwin_jax.progress import Stages
 from dtwin_jax.resources import check_update
 from dtwin_jax.sampler import SuffStats
-from dtwin_jax.update.lifecycle import check_repeat, updated_history
+from dtwin_jax.update.lifecycle import updated_history
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 from dtwin_jax.update.sampling import numpy_stats, posteriors, sample_equations
 
@@ -69,7 +69,7 @@ _INTERPOLATION = "bandlimited"
 
 def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, lib: Library, *,
                                pip_threshold: float, settings: SamplerSettings, seed: int, progress: bool,
-                               previous, forget: float, allow_repeat: bool) -> UpdateResult:
+                               previous, forget: float) -> UpdateResult:
     """Discover the drift perturbation and the constant diffusion of ``nominal`` from
     accelerometers alone (called by :func:`~dtwin_jax.output_only.update.update_output_only`).
 
@@ -82,7 +82,7 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
       accelerometers' averages over each sample's interval (state units / s^2).
     - ``xdot_names``: the states of its columns (None: all ``m``).
     - ``lib``: the drift library (no inputs); a constant column is left out with a warning.
-    - ``pip_threshold``, ``settings``, ``seed``, ``progress``, ``allow_repeat``: as
+    - ``pip_threshold``, ``settings``, ``seed``, ``progress``: as
       :func:`~dtwin_jax.output_only.update.update_output_only`.
     - ``previous``, ``forget``: a re-update; not taken yet (refused in one line).
 
@@ -96,7 +96,6 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
     rec = check_records(t, x, None, xdot, nominal, x_columns=0, xdot_columns=len(xdot_index))
     if np.any(np.asarray(nominal.F0) != 0):
         raise DataError("output-only updates do not take a nominal F0 yet: set it to zero")
-    check_repeat(previous, rec, allow_repeat)
     R, N = rec.xdot.shape[:2]
     s = settings
     check_update(R * N, lib.K, len(nominal.regressed_index), s.num_chains, s.num_draws, s.num_burnin, library=lib.spec)

@@ -109,7 +109,7 @@ def update_output_only(
         return update_from_accelerometers(
             nominal, t, xdot, xdot_names, output_only_library(library, nominal, OUTPUT_ONLY_LIBRARY),
             pip_threshold=pip_threshold, settings=settings, seed=seed, progress=progress, previous=previous,
-            forget=forget, allow_repeat=allow_repeat)
+            forget=forget)
     if xdot is not None:
         raise DataError("output-only takes the states 'x' or accelerometers alone ('xdot' without 'x'), not both yet")
     rec = check_records(t, x, None, None, nominal)
