@@ -38,6 +38,7 @@ import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax import SamplerSettings, sampler, update_input_output
 from dtwin_jax.models import systems, zoo
 from dtwin_jax.preprocess.measurement import measure
+from dtwin_jax.sampler.starts import greedy_indicators
 
 sys.path.insert(0, str(Path(__file__).parent))
 from zoo import score
@@ -85,7 +86,7 @@ def rival(stats: sampler.SuffStats, names, truth: dict, visited: np.ndarray) -> 
     for k in np.flatnonzero(true):
         allowed = np.ones(K, bool)
         allowed[k] = False
-        greedy = np.asarray(sampler._greedy_gamma(jstats, sampler.SpikeSlabPrior(), jnp.asarray(P0), jnp.asarray(V_S),
+        greedy = np.asarray(greedy_indicators(jstats, sampler.SpikeSlabPrior(), jnp.asarray(P0), jnp.asarray(V_S),
                                                   min(K, 32), allowed=jnp.asarray(allowed)))
         candidates = [greedy] + [g for g in np.unique(visited[~visited[:, k]], axis=0)]
         for g in candidates:

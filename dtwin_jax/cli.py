@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import _thread
 import argparse
 import contextlib
 import os
@@ -568,6 +569,7 @@ def console_main(argv=None) -> int:
     ``$DTWIN_JAX_PLATFORM`` says otherwise (see :func:`configure_runtime`)."""
     argv = sys.argv[1:] if argv is None else argv
     args = _parser().parse_args(argv)  # --help and usage errors exit here, before JAX starts
+    sys.unraisablehook = _keep_interrupts(sys.unraisablehook)
     try:
         configure_runtime(platform=os.environ.get("DTWIN_JAX_PLATFORM") or
                           ("auto" if args.command == "sweep" else "cpu"))
@@ -577,6 +579,20 @@ def console_main(argv=None) -> int:
         print(INTERRUPTED, file=sys.stderr)
         return 130
     return main(argv)
+
+
+def _keep_interrupts(hook):
+    """``sys.unraisablehook`` that raises a Ctrl-C again in the main thread: one that lands in a
+    callback Python cannot raise from (jaxlib's garbage-collector callback) is otherwise
+    printed and lost, and the run goes on."""
+
+    def unraisable(info):
+        if isinstance(info.exc_value, KeyboardInterrupt):
+            _thread.interrupt_main()
+        else:
+            hook(info)
+
+    return unraisable
 
 
 def main(argv=None) -> int:

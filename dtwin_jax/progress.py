@@ -39,22 +39,24 @@ def tick(n=1) -> None:
 
 class Bar:
     """``with Bar(show, total, desc):`` a tqdm bar that :func:`tick` advances, or nothing
-    (``show`` False, or :func:`draws_bars` False)."""
+    (``show`` False, :func:`draws_bars` False, or a bar already open)."""
 
     def __init__(self, show: bool, total: int, desc: str):
         self.show, self.total, self.desc = show, total, desc
 
     def __enter__(self):
-        if self.show and draws_bars():
+        # Inside an open bar (an update's, over every equation) the outer bar counts.
+        self._own = self.show and _BAR[0] is None and draws_bars()
+        if self._own:
             from tqdm.auto import tqdm
 
             _BAR[0] = tqdm(total=self.total, desc=self.desc, leave=False)
         return self
 
     def __exit__(self, *exc):
-        if _BAR[0] is not None:
+        if self._own:
             _BAR[0].close()
-        _BAR[0] = None
+            _BAR[0] = None
         return False
 
 

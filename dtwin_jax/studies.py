@@ -47,7 +47,6 @@ from dtwin_jax.preprocess import measurement
 from dtwin_jax.preprocess.denoise import auto_half_width
 from dtwin_jax.progress import Bar, tick
 from dtwin_jax.update.result import SamplerSettings
-from dtwin_jax.update.sampling import sampler_kwargs
 
 __all__ = [
     "DEFAULT_LEVELS",
@@ -110,10 +109,8 @@ def _sample_and_summarise(keys, stats, truth, support, settings, method, pip_thr
     """Sample and summarise a batch of problems: ``keys (B,)``, ``stats`` with leading ``B``,
     ``truth``/``support (B, K)``. Only the ``(K,)`` summaries leave the loop body, so a
     problem's draws never coexist with another's (memory stays at one trace)."""
-    kwargs = sampler_kwargs(settings)
-
     def one(key, st, tr, sup):
-        trace = sampler.sample(key, st, chain_method=method, **kwargs)
+        trace = sampler.sample(key, st, settings, chain_method=method)
         out = summarise(trace, tr, sup, pip_threshold)
         jax.debug.callback(lambda _: tick(1), out.num_selected)  # one step per problem
         return out

@@ -10,6 +10,7 @@ import numpy as np
 
 import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax import sampler as S
+from dtwin_jax.sampler import kernel
 
 
 def _collinear_problem(seed, N, K, noise, cos_noise):
@@ -47,8 +48,8 @@ def _exact(stats, K, p0, v_s, prior, size=None):
 
 
 def _factor(stats, gamma, v_s, R):
-    slot_idx, _ = S._active_slots(gamma, R)
-    return (slot_idx,) + S._factor_slots(stats, slot_idx, v_s)[:4]
+    slot_idx, _ = kernel._active_slots(gamma, R)
+    return (slot_idx,) + kernel._factor_slots(stats, slot_idx, v_s)[:4]
 
 
 def test_swap_move_leaves_the_exact_posterior_invariant():
@@ -62,7 +63,7 @@ def test_swap_move_leaves_the_exact_posterior_invariant():
     p0, v_s = jnp.asarray(0.3), jnp.asarray(4.0)
 
     def swaps(gamma, key):
-        gamma, _ = S._swap(key, gamma, _factor(stats, gamma, v_s, R), v_s, stats, prior)
+        gamma, _ = kernel._swap(key, gamma, _factor(stats, gamma, v_s, R), v_s, stats, prior)
         return gamma, gamma
 
     start = jnp.zeros(K, bool).at[jnp.asarray([1, 5])].set(True)
@@ -73,8 +74,8 @@ def test_swap_move_leaves_the_exact_posterior_invariant():
 
     def both(gamma, key):
         k1, k2 = jax.random.split(key)
-        gamma = S._indicator_sweep(k1, gamma, p0, v_s, stats, prior, R)
-        gamma, _ = S._swap(k2, gamma, _factor(stats, gamma, v_s, R), v_s, stats, prior)
+        gamma = kernel._indicator_sweep(k1, gamma, p0, v_s, stats, prior, R)
+        gamma, _ = kernel._swap(k2, gamma, _factor(stats, gamma, v_s, R), v_s, stats, prior)
         return gamma, gamma
 
     _, draws = jax.jit(lambda k: jax.lax.scan(both, start, jax.random.split(k, 20000)))(jax.random.key(1))
@@ -91,7 +92,7 @@ def test_swap_returns_the_factorisation_of_the_model_it_keeps():
     gamma = jnp.zeros(K, bool).at[jnp.asarray([0, 2])].set(True)
     seen = set()
     for i in range(20):
-        new, (slot_idx, _, logdet, _, quad) = S._swap(
+        new, (slot_idx, _, logdet, _, quad) = kernel._swap(
             jax.random.key(i), gamma, _factor(stats, gamma, v_s, K), v_s, stats, S.SpikeSlabPrior())
         seen.add(tuple(np.flatnonzero(np.asarray(new))))
         g = np.asarray(new)

@@ -236,7 +236,7 @@ def test_later_stages_compile_ahead_in_a_worker_thread_and_nothing_compiles_twic
     them compiled (a miss would lower the same program again in the main thread)."""
     ex, t, x = _ensemble("example1", records=7, duration=0.301)  # shapes no other test compiles
     update_output_only(ex.system.nominal, t, x, library="poly:2", settings=FAST)
-    ours = {"jit(drift_pass)", "jit(_setup_chunked)", "jit(_run_chains)", "jit(first_pass_estimate)",
+    ours = {"jit(drift_pass)", "jit(_setup_program)", "jit(_run_chains)", "jit(first_pass_estimate)",
             "jit(brownian_variance)", "jit(_residual_increments)", "jit(diffusion_mle)", "jit(diffusion_regression)",
             "jit(standardized_innovations)"}
     lowered = [entry for entry in lowered_programs if entry[1] in ours]

@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import time
+import types
 import zipfile
 from pathlib import Path
 
@@ -272,3 +273,23 @@ def test_demo_records_are_checked(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("dtwin-jax: error: --records 1000000000 needs about") and err.count("\n") == 1, err
     assert not (tmp_path / "demo").exists()
+
+
+def test_a_ctrl_c_lost_in_a_callback_is_raised_again():
+    """A KeyboardInterrupt that Python reports as unraisable (it landed in jaxlib's
+    garbage-collector callback) is raised again in the main thread; other reports pass on."""
+    from dtwin_jax.cli import _keep_interrupts
+
+    reported = []
+    hook = _keep_interrupts(reported.append)
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # xdist's workers ignore it
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            hook(types.SimpleNamespace(exc_value=KeyboardInterrupt()))
+            for _ in range(100):
+                time.sleep(0.01)
+    finally:
+        signal.signal(signal.SIGINT, before)
+    other = types.SimpleNamespace(exc_value=ValueError("x"))
+    hook(other)
+    assert reported == [other]

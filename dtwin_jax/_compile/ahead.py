@@ -3,8 +3,9 @@ worker thread while the caller's earlier stages run.
 
 A cold update is mostly XLA compilation, and much of the rest (tracing, the filters, the
 chains) runs on one core; on a 2-core machine a second thread compiling the next stage's
-programs fills the idle core. JAX's caches are shared across threads, so the stage's own
-call then finds its programs compiled. A job that fails is ignored: the stage compiles
+programs fills the idle core. JAX's caches are shared across threads, and a call of a
+program that the worker is compiling waits for it instead of compiling it again, so the
+stage's own call finds its program compiled. A job that fails is ignored: the stage compiles
 (and reports) for itself. JAX's thread-local settings (``with jax.default_device(...)`` and
 the like) do not reach the worker; where they change a program, the worker's copy goes
 unused and the stage compiles its own, as it would without the worker.
@@ -13,37 +14,29 @@ unused and the stage compiles its own, as it would without the worker.
 from __future__ import annotations
 
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
+
+from dtwin_jax._compile import aot
 
 __all__ = ["Ahead"]
 
 
 class Ahead:
-    """A worker thread that runs named compile jobs in the order submitted.
+    """A worker thread that runs compile jobs in the order submitted:
+    ``with Ahead() as ahead: ahead.submit(fn, *args); ...``. Leaving the block drops the
+    jobs not started and waits for the running one. A process that runs exported programs
+    (:mod:`dtwin_jax._compile.aot`, the command line) runs no jobs: its stages would not use
+    the programs compiled here."""
 
-    ``with Ahead() as ahead: ahead.submit("diffusion sampler", fn, *args); ...;
-    ahead.wait("diffusion sampler")``: ``wait`` blocks until that job is done, so that the
-    caller does not compile the same program a second time beside it. Leaving the block
-    drops the jobs not started and waits for the running one. ``enabled=False``: no jobs
-    (a process running :mod:`dtwin_jax._compile.aot`'s exported programs, whose stages would not use
-    the programs compiled here)."""
-
-    def __init__(self, enabled: bool = True) -> None:
-        self._enabled = enabled
+    def __init__(self) -> None:
+        self._enabled = not aot.enabled()
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dtwin-compile-ahead")
-        self._jobs: dict[str, list[Future]] = {}
 
-    def submit(self, name: str, fn: Callable, *args, **kwargs) -> None:
-        """Queue ``fn(*args, **kwargs)`` under ``name`` (several jobs may share one); nothing
-        when not ``enabled``."""
+    def submit(self, fn: Callable, *args, **kwargs) -> None:
+        """Queue ``fn(*args, **kwargs)``; its errors are dropped (the stage's own call
+        compiles the program and raises what is wrong)."""
         if self._enabled:
-            self._jobs.setdefault(name, []).append(self._pool.submit(fn, *args, **kwargs))
-
-    def wait(self, name: str) -> None:
-        """Block until the jobs named ``name`` are done; their errors are dropped (the
-        stage's own call compiles the program and raises what is wrong)."""
-        for job in self._jobs.pop(name, []):
-            job.exception()
+            self._pool.submit(fn, *args, **kwargs)
 
     def __enter__(self) -> "Ahead":
         return self

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import jax
 
-__all__ = ["call", "enable", "enabled"]
+__all__ = ["call", "enable", "enabled", "exported"]
 
 # key -> jitted call of the exported program, so that a process traces each one once
 _LOADED: dict[str, Callable] = {}
@@ -44,11 +44,34 @@ def enabled() -> bool:
     return _folder is not None
 
 
-def call(name: str, fn: Callable, args: tuple, static: tuple = (), unflatten: Callable = lambda leaves: leaves):
+def exported(name: str, static_argnums: tuple[int, ...] = ()) -> Callable:
+    """Decorate a jitted function so that its calls run through :func:`call` under ``name``;
+    the arguments at ``static_argnums`` are static (hashable; their ``repr`` is part of the
+    key)."""
+
+    def wrap(fn: Callable) -> Callable:
+        @functools.wraps(fn)
+        def run(*args):
+            static = tuple(args[i] for i in static_argnums)
+            dynamic = tuple(a for i, a in enumerate(args) if i not in static_argnums)
+
+            def bound(*values):
+                it = iter(values)
+                return fn(*(args[i] if i in static_argnums else next(it) for i in range(len(args))))
+
+            return call(name, bound, dynamic, static)
+
+        run.lower = getattr(fn, "lower", None)
+        return run
+
+    return wrap
+
+
+def call(name: str, fn: Callable, args: tuple, static: tuple = ()):
     """``fn(*args)`` through a disk-cached export. ``args``: a pytree of arrays (its
     structure is part of the key); ``static``: hashable values that change the program
-    (their ``repr`` is part of the key); ``fn`` returns a pytree of arrays, given back as
-    ``unflatten(leaves)`` (default: the list of leaves)."""
+    (their ``repr`` is part of the key); ``fn`` returns a pytree of arrays and of the
+    package's NamedTuples (:func:`_register`)."""
     leaves, tree = jax.tree.flatten(args)
     folder = _folder
     if folder is None or any(isinstance(a, jax.core.Tracer) for a in leaves):
@@ -59,7 +82,20 @@ def call(name: str, fn: Callable, args: tuple, static: tuple = (), unflatten: Ca
     if run is None:
         run = _load_or_export(path, fn, tree, leaves)
         _LOADED[key] = run
-    return unflatten(run(*leaves))
+    return run(*leaves)
+
+
+@functools.cache
+def _register() -> None:
+    """The NamedTuples that exported programs return, by name, so that an export holds its
+    output's structure (called once, before the first export or load)."""
+    from jax import export
+
+    from dtwin_jax.output_only.statespace import Linearization
+    from dtwin_jax.sampler.kernel import GibbsState, GibbsTrace, SuffStats
+
+    for t in (SuffStats, GibbsState, GibbsTrace, Linearization):
+        export.register_namedtuple_serialization(t, serialized_name=f"dtwin_jax.{t.__name__}")
 
 
 def _path(folder: Path, name: str, static: tuple, tree, leaves) -> Path:
@@ -84,6 +120,7 @@ def _source_digest() -> str:
 def _load_or_export(path: Path, fn: Callable, tree, leaves) -> Callable:
     from jax import export
 
+    _register()
     if path.is_file():
         try:
             loaded = export.deserialize(bytearray(path.read_bytes()))
@@ -93,7 +130,7 @@ def _load_or_export(path: Path, fn: Callable, tree, leaves) -> Callable:
             pass
 
     def flat(*xs):
-        return tuple(jax.tree.leaves(fn(*jax.tree.unflatten(tree, xs))))
+        return fn(*jax.tree.unflatten(tree, xs))
 
     exported = export.export(jax.jit(flat))(*leaves)
     path.parent.mkdir(parents=True, exist_ok=True)

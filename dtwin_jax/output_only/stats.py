@@ -26,7 +26,6 @@ from dtwin_jax.library import Library
 from dtwin_jax.models.systems import LinearSecondOrder
 from dtwin_jax.output_only import kramers_moyal, statespace
 from dtwin_jax.update.result import SamplerSettings
-from dtwin_jax.update.sampling import sampler_kwargs
 
 __all__ = [
     "FIRST_PASS_ROWS",
@@ -111,13 +110,13 @@ def output_only_drift_stats(nominal: LinearSecondOrder, lib: Library, x, dt, noi
     """
     q = len(nominal.regressed_index)
     R, N, _ = x.shape
-    kwargs = sampler_kwargs(first_pass_settings(settings))  # the update's first pass, as one call
+    first_settings = first_pass_settings(settings)  # the update's first pass, as one call
 
     def one_pass(carry, inputs):
         key, rows = inputs
         coef, smoothing, _, _ = carry
         st, margin = drift_pass(nominal, lib, x, dt, noise_var, coef, smoothing, rows)
-        trace = jax.vmap(lambda k, s: sampler.sample(k, s, **kwargs))(jax.random.split(key, q), st)
+        trace = jax.vmap(lambda k, s: sampler.sample(k, s, first_settings))(jax.random.split(key, q), st)
         coef, smoothing = first_pass_estimate(nominal, dt, noise_var, trace)
         return (coef, smoothing, st, margin), None
 
@@ -179,8 +178,12 @@ class DiffusionFit(NamedTuple):
     window: int  # its pre-averaging window in samples
 
 
+# A new process (the command line) reuses the traced program.
+_diffusion_mle = aot.exported("diffusion_mle")(statespace.diffusion_mle)
+
+
 def diffusion_statistics(
-    step: statespace.DriftStep, dlib: Library, x, noise_var, *, window: int | None = None, ready=lambda: None
+    step: statespace.DriftStep, dlib: Library, x, noise_var, *, window: int | None = None
 ) -> DiffusionFit:
     """The diffusion library's statistics, given the drift ``step``, from records
     ``x (R, N, m)`` with measurement noise variances ``noise_var (m,)`` (first guesses,
@@ -190,18 +193,13 @@ def diffusion_statistics(
     maximum (:func:`statespace.diffusion_mle`), EM targets at it and their statistics on
     ``dlib`` weighted by :func:`_diffusion_stats`. ``window``: the pre-averaging window;
     None picks it from the data, which needs concrete values, so pass an int under ``jit``.
-    ``ready()`` is called before the likelihood's program runs (:class:`dtwin_jax._compile.ahead.Ahead`).
     """
     nominal = step.nominal
     pilot, window = kramers_moyal.preaveraged_diffusion(
         nominal, x, step.dt, noise_var, step.perturbation, window=window
     )
     y = statespace.segments(x)
-    ready()
-    gamma, gamma_cov, noise, lin = aot.call(  # a new process reuses the traced program
-        "diffusion_mle", statespace.diffusion_mle, (step, y, noise_var, pilot),
-        unflatten=lambda leaves: (*leaves[:3], statespace.Linearization(*leaves[3:])),
-    )
+    gamma, gamma_cov, noise, lin = _diffusion_mle(step, y, noise_var, pilot)
     vel = tuple(int(v) for v in nominal.velocity_index)
     stats, L = diffusion_regression(dlib, lin, y, noise, gamma, gamma_cov, vel)
     return DiffusionFit(stats, gamma, gamma_cov, noise, lin, y, L, pilot, window)

@@ -45,7 +45,6 @@ from dtwin_jax.update.sampling import (
     numpy_stats,
     posteriors,
     sample_equations,
-    sampler_kwargs,
 )
 
 __all__ = ["update_output_only", "OUTPUT_ONLY_LIBRARY", "DIFFUSION_LIBRARY", "MARGIN_WARN"]
@@ -125,18 +124,17 @@ def update_output_only(
     if previous is not None and previous.preprocessing.get("diffusion_library") != dlib.spec:
         raise DataError(f"re-update needs the previous diffusion library '{previous.preprocessing.get('diffusion_library')}'")
     stages = Stages(progress, 5, "output-only update")
-    with Ahead(enabled=not aot.enabled()) as ahead:  # exported programs (the CLI) compile apart
+    with Ahead() as ahead:
         # The drift sampler's programs depend on the library's size only: compiled beside
         # the drift statistics' program.
         for run in (first_pass_settings(settings), settings):
-            ahead.submit("drift", sampler.compile_chunked, lib.K, **sampler_kwargs(run))
+            ahead.submit(sampler.compile_chunked, lib.K, run)
         R, N, m = rec.x.shape
         dt = rec.dt
         with stages("drift statistics (Kramers-Moyal)"):
             noise_var = kramers_moyal.noise_variance(rec.x)
             check_columns(np.asarray(lib(rec.x.reshape(-1, m)[:: max(1, R * N // 20000)])), lib.names)
-            drift_stats, margin = drift_statistics(nominal, lib, rec.x, dt, noise_var, settings, seed,
-                                                   ready=lambda: ahead.wait("drift"))
+            drift_stats, margin = drift_statistics(nominal, lib, rec.x, dt, noise_var, settings, seed)
             drift_stats = jax.block_until_ready(with_previous(drift_stats, "drift", previous, forget))
         names = nominal.state_names
         regressed = [names[i] for i in nominal.regressed_index]
@@ -157,25 +155,21 @@ def update_output_only(
             # (the regression after it compiles here: the worker would come to it too late).
             y = statespace.segments(rec.x)  # for the worker (diffusion_statistics cuts its own)
             vel = tuple(int(v) for v in nominal.velocity_index)
-            ahead.submit("likelihood", _compile_likelihood, step, y, noise_var, vel)
-            ahead.submit("diffusion", sampler.compile_chunked, dlib.K, **sampler_kwargs(settings), quick=True)
-            ahead.submit("checks", _compile_checks, y, vel)
-            fit = diffusion_statistics(step, dlib, rec.x, noise_var, ready=lambda: ahead.wait("likelihood"))
+            ahead.submit(_compile_likelihood, step, y, noise_var, vel)
+            ahead.submit(sampler.compile_chunked, dlib.K, settings)
+            ahead.submit(_compile_checks, y, vel)
+            fit = diffusion_statistics(step, dlib, rec.x, noise_var)
             check_columns(np.asarray(fit.columns), dlib.names)
             gamma, fitted_noise, lin, y = fit.gamma, fit.noise, fit.lin, fit.segments
             gamma_var = np.diag(np.asarray(fit.gamma_cov))
             stats = jax.block_until_ready(with_previous(fit.stats, "diffusion", previous, forget))
         with stages("diffusion sampling"):
-            ahead.wait("diffusion")
-            # A few terms: the chains run in ~0.1 s, and compiling their program fully
-            # would take longer than running it unoptimized (the same indicators).
-            trace = sample_equations(stats, settings, seed + 1, progress, quick=True)
+            trace = sample_equations(stats, settings, seed + 1, progress)
             velocities = [names[i] for i in nominal.velocity_index]
             diffusion = posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
         # The drift's posterior-predictive check: one-step innovations of the velocities under
         # the fitted drift and diffusion, white and unpredictable from the past when it fits.
         with stages("residual checks"), stages:
-            ahead.wait("checks")
             innov, predicted = statespace.standardized_innovations(lin, y, fitted_noise, gamma, vel)
             predicted = np.asarray(predicted)
             checks = {
@@ -214,8 +208,12 @@ def update_output_only(
     )
 
 
+# A new process (the command line) reuses the traced program.
+_drift_pass = aot.exported("drift_pass", static_argnums=(1, 3))(drift_pass)
+
+
 def drift_statistics(nominal: LinearSecondOrder, lib: Library, x, dt: float, noise_var, settings: SamplerSettings,
-                     seed: int, ready=lambda: None) -> tuple[SuffStats, jax.Array]:
+                     seed: int) -> tuple[SuffStats, jax.Array]:
     """:func:`output_only_drift_stats` of records ``x (R, N, m)`` with ``key(seed)``, run as
     separate programs with the same result: both passes are one program, and the first
     pass's short run is the drift sampling's program (:func:`sample_equations`), compiled
@@ -223,15 +221,10 @@ def drift_statistics(nominal: LinearSecondOrder, lib: Library, x, dt: float, noi
     R, N, m = x.shape
 
     def one_pass(coef, smoothing, rows):
-        return aot.call(  # a new process (the command line) reuses the traced program
-            "drift_pass", lambda n, xx, nv, c, s, r: drift_pass(n, lib, xx, dt, nv, c, s, r),
-            (nominal, x, noise_var, coef, smoothing, jnp.asarray(rows)), static=(lib, float(dt)),
-            unflatten=lambda leaves: (SuffStats(*leaves[:4]), leaves[4]),
-        )
+        return _drift_pass(nominal, lib, x, float(dt), noise_var, coef, smoothing, jnp.asarray(rows))
 
     first, _ = one_pass(jnp.zeros((len(nominal.regressed_index), lib.K)), jnp.zeros(m), first_pass_rows(x))
     first_key = jax.random.split(jax.random.key(seed))[0]
-    ready()
     trace = sample_equations(first, first_pass_settings(settings), seed, False, key=first_key)
     return one_pass(*first_pass_estimate(nominal, dt, noise_var, trace), R * (N - 2))
 

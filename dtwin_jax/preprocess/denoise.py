@@ -132,11 +132,11 @@ def kinematic_smoother(
         half_width = auto_half_width(nominal, dt, x.shape[0])
     u = None if u is None else jnp.asarray(u)
     hw = int(half_width)
-    # A new process (the command line) reuses the traced program: see dtwin_jax._compile.aot.
-    return aot.call("kinematic_smoother", lambda n, a, b, c: _kinematic_smoother(n, dt, a, b, c, hw),
-                    (nominal, x, xdot, u), static=(float(dt), hw), unflatten=lambda leaves: leaves[0])
+    return _kinematic_smoother(nominal, float(dt), x, xdot, u, hw)
 
 
+# A new process (the command line) reuses the traced program (dtwin_jax._compile.aot).
+@aot.exported("kinematic_smoother", static_argnums=(1, 5))
 @eqx.filter_jit
 def _kinematic_smoother(nominal: LinearSecondOrder, dt: float, x, xdot, u, half_width: int):
     # Compiled as a whole: run eagerly, the noise fit's loop compiled anew on every call

@@ -10,7 +10,6 @@ from dataclasses import dataclass, field
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import sampler
 from dtwin_jax.collinearity import twin_coefficients
 from dtwin_jax.library import Library
 from dtwin_jax.models.prediction import (
@@ -20,23 +19,9 @@ from dtwin_jax.models.prediction import (
 )
 from dtwin_jax.models.systems import LinearSecondOrder
 from dtwin_jax.posterior import EquationPosterior, format_coefficient
+from dtwin_jax.sampler import SamplerSettings
 
 __all__ = ["SamplerSettings", "UpdateResult"]
-
-
-@dataclass(frozen=True)
-class SamplerSettings:
-    """Chains, draws and prior of the Gibbs sampler (the paper uses 3000 sweeps)."""
-
-    num_chains: int = 4
-    num_draws: int = 2000
-    num_burnin: int = 1000
-    prior: sampler.SpikeSlabPrior = sampler.SpikeSlabPrior()
-    p0: float = 0.1
-    v_s: float = 10.0
-    max_active: int | None = None
-    # Each sweep ends with an exchange move between correlated terms (sampler._swap).
-    swap: bool = True
 
 
 @dataclass

@@ -10,14 +10,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax import sampler
-from dtwin_jax._compile import aot
 from dtwin_jax.library import DEFAULT_LIBRARY, Library, parse_library
 from dtwin_jax.models.systems import LinearSecondOrder
 from dtwin_jax.posterior import EquationPosterior
-from dtwin_jax.progress import Bar, tick
+from dtwin_jax.progress import Bar
 from dtwin_jax.update.result import SamplerSettings
 
-__all__ = ["resolve_library", "posteriors", "numpy_stats", "sample_equations", "sampler_kwargs"]
+__all__ = ["resolve_library", "posteriors", "numpy_stats", "sample_equations"]
 
 
 def resolve_library(library, nominal: LinearSecondOrder, num_inputs: int) -> Library:
@@ -43,13 +42,12 @@ def numpy_stats(stats: sampler.SuffStats) -> sampler.SuffStats:
 
 
 def sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed: int, progress: bool,
-                      key: jax.Array | None = None, quick: bool = False) -> sampler.GibbsTrace:
+                      key: jax.Array | None = None) -> sampler.GibbsTrace:
     """Draws ``(q, chains, draws, ...)`` (host arrays) for the batched statistics of every
     equation, each by :func:`sampler.sample_in_chunks` with its own key from ``seed`` (or
-    ``key``). Its programs depend on K and the chains only, so updates of other lengths, the
-    output-only first pass and new processes (:mod:`dtwin_jax._compile.aot`) reuse them.
-    ``progress``: a bar of the sweeps, advanced after each chunk; ``quick``: see
-    :func:`sampler.sample_in_chunks`."""
+    ``key``). Its programs depend on the library's size class and the chains only, so
+    updates of other lengths and libraries, and the output-only first pass, reuse them.
+    ``progress``: a bar of every equation's sweeps."""
     # Strongly typed float64: a weakly typed count (from a Python scalar) and a re-update's
     # summed one would otherwise be two jit signatures, and the sampler would compile twice.
     stats = sampler.SuffStats(*(jnp.asarray(a, dtype=jnp.float64) for a in stats))
@@ -59,22 +57,7 @@ def sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed: 
     sweeps = q * settings.num_chains * -(-total // sampler.CHUNK) * sampler.CHUNK
     with Bar(progress, sweeps, "Gibbs sweeps"):
         traces = [
-            sampler.sample_in_chunks(keys[j], jax.tree.map(lambda a: a[j], stats), **sampler_kwargs(settings),
-                                     on_chunk=tick if progress else None, call=aot.call, quick=quick)
+            sampler.sample_in_chunks(keys[j], jax.tree.map(lambda a: a[j], stats), settings, progress=progress)
             for j in range(q)
         ]
     return sampler.GibbsTrace(*(np.stack(parts) for parts in zip(*traces)))
-
-
-def sampler_kwargs(settings: SamplerSettings) -> dict:
-    """``settings`` as keyword arguments of :func:`sampler.sample`."""
-    return dict(
-        num_draws=settings.num_draws,
-        num_burnin=settings.num_burnin,
-        num_chains=settings.num_chains,
-        prior=settings.prior,
-        max_active=settings.max_active,
-        p0=settings.p0,
-        v_s=settings.v_s,
-        swap=settings.swap,
-    )

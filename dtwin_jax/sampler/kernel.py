@@ -26,27 +26,25 @@ uniform flips it; a flip is a rank-one Schur-complement update (O(K R)). A sweep
 O(K R^2 + flips K R) instead of K sequential O(R^2) steps, with the same draws. A sweep that
 flips nothing draws ``sigma2`` and ``theta`` from the factorisation it started with.
 
+A column that is zero on every row (``gram[k, k] == 0``) is no term: its indicator stays 0 and
+it does not count in ``p0``'s update. The driver (:mod:`dtwin_jax.sampler.driver`) pads
+libraries with such columns to a few sizes, so that one compiled program serves them all.
+
 The kernel follows blackjax: ``init(stats) -> GibbsState`` and
 ``step(key, state, stats) -> (GibbsState, GibbsInfo)`` are pure functions of NamedTuples,
 jittable, vmappable over chains and over independent problems.
 
-:func:`sample` starts its chains from dispersed indicator states (:func:`initial_indicators`):
-chain 0 from a greedy forward selection, the others from greedy selections among random halves
-of the library. Chains that all start in one mode cannot reveal a second one; from dispersed
-starts a posterior with several modes shows up as chains that disagree (per-chain PIPs, R-hat).
+The chains' starting indicators are in :mod:`dtwin_jax.sampler.starts`; the drivers that run
+them, in :mod:`dtwin_jax.sampler.driver`.
 """
 
 from __future__ import annotations
 
-import inspect
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.scipy.linalg import cho_solve, solve_triangular
-
-from dtwin_jax._compile.quick_compile import quick_jit
 
 __all__ = [
     "SpikeSlabPrior",
@@ -56,14 +54,13 @@ __all__ = [
     "GibbsTrace",
     "suff_stats",
     "standardize",
+    "log_marginal",
+    "slots",
+    "present_terms",
     "init",
-    "initial_indicators",
     "step",
     "run_chain",
-    "sample",
-    "compile_chunked",
-    "sample_in_chunks",
-    "CHUNK",
+    "run_keys",
 ]
 
 
@@ -139,7 +136,7 @@ def standardize(stats: SuffStats) -> tuple[SuffStats, jax.Array, jax.Array]:
 # --- the collapsed marginal likelihood -------------------------------------------------
 
 
-def _log_marginal(num_active, logdet, quad, v_s, stats: SuffStats, prior: SpikeSlabPrior):
+def log_marginal(num_active, logdet, quad, v_s, stats: SuffStats, prior: SpikeSlabPrior):
     """log p(y | gamma, v_s) up to a constant, with theta and sigma2 integrated out."""
     resid = jnp.maximum(stats.yty - quad, 1e-300)
     shape = prior.a_sigma + 0.5 * stats.n
@@ -162,60 +159,18 @@ def _factor(gram, xty, gamma, v_s):
     return chol, logdet, mean, quad, mm
 
 
+
+def slots(K: int, max_active: int | None) -> int:
+    """The number of active-set slots ``R`` (static): ``max_active``, default 32, at most K."""
+    return min(K, 32) if max_active is None else min(K, int(max_active))
+
+
+def present_terms(stats: SuffStats) -> jax.Array:
+    """``(K,)`` bool: the columns that are terms (not zero on every row)."""
+    return jnp.diagonal(stats.gram) > 0
+
+
 # --- initialisation --------------------------------------------------------------------
-
-
-def _greedy_gamma(stats: SuffStats, prior: SpikeSlabPrior, p0, v_s, R, allowed=None):
-    """Forward selection on the collapsed posterior of gamma at fixed ``p0`` and ``v_s``.
-
-    Starting from the empty model, add the term whose inclusion most increases
-    ``log p(y | gamma, v_s) + log p(gamma | p0)`` until no addition helps. This replaces the
-    paper's least-squares initialisation (Algorithm 1, steps 2-3), which breaks down when the
-    library is nearly collinear (K close to N, or exp/sin next to polynomials). ``allowed``
-    ``(K,)`` bool restricts the candidates (default: every term).
-    """
-    K = stats.gram.shape[0]
-    G, b = stats.gram, stats.xty
-    logit_p0 = jnp.log(p0) - jnp.log1p(-p0)
-    allowed = jnp.ones(K, bool) if allowed is None else jnp.asarray(allowed, bool)
-
-    def gains(P, gamma, logdet, quad, r):
-        m = gamma.astype(G.dtype)
-        U = P @ (G * m[:, None])  # column k: P g_k, g_k the active part of G[:, k]
-        s = jnp.maximum(jnp.diagonal(G) + 1.0 / v_s - jnp.sum(G * m[:, None] * U, axis=0), 1.0 / v_s)
-        t = b - U.T @ b
-        new = _log_marginal(r + 1, logdet + jnp.log(s), quad + t**2 / s, v_s, stats, prior)
-        old = _log_marginal(r, logdet, quad, v_s, stats, prior)
-        gain = jnp.where(gamma | ~allowed, -jnp.inf, new - old + logit_p0)
-        return gain, U, s, t
-
-    def cond(carry):
-        _, gamma, _, _, r, best = carry
-        return (best > 0) & (r < R)
-
-    def body(carry):
-        P, gamma, logdet, quad, r, _ = carry
-        gain, U, s, t = gains(P, gamma, logdet, quad, r)
-        k = jnp.argmax(gain)
-        best = gain[k]
-        w = U[:, k] - jnp.eye(K, dtype=G.dtype)[k]
-        add = best > 0
-        P = jnp.where(add, P + jnp.outer(w, w) / s[k], P)
-        gamma = jnp.where(add, gamma.at[k].set(True), gamma)
-        logdet = jnp.where(add, logdet + jnp.log(s[k]), logdet)
-        quad = jnp.where(add, quad + t[k] ** 2 / s[k], quad)
-        r = jnp.where(add, r + 1, r)
-        return P, gamma, logdet, quad, r, best
-
-    carry = (
-        jnp.zeros_like(G),
-        jnp.zeros(K, dtype=bool),
-        jnp.zeros((), G.dtype),
-        jnp.zeros((), G.dtype),
-        jnp.zeros((), jnp.int32),
-        jnp.asarray(jnp.inf, G.dtype),
-    )
-    return jax.lax.while_loop(cond, body, carry)[1]
 
 
 def init(
@@ -232,9 +187,11 @@ def init(
     paper's 0.1 and 10)."""
     p0 = jnp.asarray(p0, stats.gram.dtype)
     v_s = jnp.asarray(v_s, stats.gram.dtype)
-    if gamma is None:
-        R = _max_active(stats.gram.shape[0], max_active)
-        gamma = _greedy_gamma(stats, prior, p0, v_s, R)
+    if gamma is None:  # starts builds on this module: imported here
+        from dtwin_jax.sampler.starts import greedy_indicators
+
+        R = slots(stats.gram.shape[0], max_active)
+        gamma = greedy_indicators(stats, prior, p0, v_s, R)
     gamma = jnp.asarray(gamma, dtype=bool)
     _, _, mean, quad, _ = _factor(stats.gram, stats.xty, gamma, v_s)
     sigma2 = jnp.maximum(stats.yty - quad, 1e-300) / stats.n
@@ -302,6 +259,7 @@ def _sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrior, R: int)
     position = jnp.zeros(K, jnp.int32).at[order].set(jnp.arange(K, dtype=jnp.int32))
     u_k = uniforms[position]  # the uniform of each term's turn
     diag_G = jnp.diagonal(G)
+    present = diag_G > 0
 
     def next_flip(P, U, G_act, slot_idx, slot_of, gamma, logdet, quad, r, start):
         """The first term at position >= start whose uniform flips it, and what the flip needs."""
@@ -318,11 +276,11 @@ def _sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrior, R: int)
         quad_out = jnp.where(gamma, quad - pb**2 / pjj, quad)
         log_odds = (
             logit_p0
-            + _log_marginal(r_out + 1, logdet_in, quad_in, v_s, stats, prior)
-            - _log_marginal(r_out, logdet_out, quad_out, v_s, stats, prior)
+            + log_marginal(r_out + 1, logdet_in, quad_in, v_s, stats, prior)
+            - log_marginal(r_out, logdet_out, quad_out, v_s, stats, prior)
         )
         # The model size is capped at R (a truncated prior): a full model cannot grow.
-        new = (u_k < jax.nn.sigmoid(log_odds)) & ~(~gamma & (r_out >= R))
+        new = (u_k < jax.nn.sigmoid(log_odds)) & ~(~gamma & (r_out >= R)) & present
         k = jnp.argmin(jnp.where((new != gamma) & (position >= start), position, K)).astype(jnp.int32)
         found = (new[k] != gamma[k]) & (position[k] >= start)
         return found, k, (s[k], j[k], logdet_in[k], quad_in[k], logdet_out[k], quad_out[k])
@@ -412,9 +370,10 @@ def _swap(key, gamma, current, v_s, stats: SuffStats, prior: SpikeSlabPrior):
         return G[i] ** 2 / (norm2[i] * norm2) + 1e-12
 
     r = jnp.sum(gamma)
-    possible = (r >= 1) & (r < K)
+    present = present_terms(stats)
+    possible = (r >= 1) & (r < jnp.sum(present))
     j = jax.random.categorical(k_j, jnp.where(gamma, 0.0, -jnp.inf))
-    out = ~gamma
+    out = ~gamma & present
     w_j = weights(j)
     k = jax.random.categorical(k_k, jnp.where(out, jnp.log(w_j), -jnp.inf))
     w_k = weights(k)
@@ -436,8 +395,8 @@ def _swap(key, gamma, current, v_s, stats: SuffStats, prior: SpikeSlabPrior):
     quad_n = quad - mean[slot] ** 2 / p_jj + t**2 / s
     rf = r.astype(dtype)
     log_ratio = (
-        _log_marginal(rf, logdet_n, quad_n, v_s, stats, prior)
-        - _log_marginal(rf, logdet, quad, v_s, stats, prior)
+        log_marginal(rf, logdet_n, quad_n, v_s, stats, prior)
+        - log_marginal(rf, logdet, quad, v_s, stats, prior)
         + jnp.log(forward)
         - jnp.log(backward)
     )
@@ -450,10 +409,6 @@ def _swap(key, gamma, current, v_s, stats: SuffStats, prior: SpikeSlabPrior):
 
     gamma = jnp.where(accept, gamma.at[j].set(False).at[k].set(True), gamma)
     return gamma, jax.lax.cond(accept, exchanged, lambda _: current, None)
-
-
-def _max_active(K: int, max_active: int | None) -> int:
-    return min(K, 32) if max_active is None else min(K, int(max_active))
 
 
 def step(
@@ -473,14 +428,15 @@ def step(
     """
     k_ind, k_gamma, k_theta = jax.random.split(key, 3)
     K = stats.gram.shape[0]
-    R = _max_active(K, max_active)
+    R = slots(K, max_active)
     dtype = stats.gram.dtype
     gamma, changed, initial = _sweep(k_ind, state.gamma, state.p0, state.v_s, stats, prior, R)
     r = jnp.sum(gamma).astype(dtype)
 
     # Every gamma variate of the sweep in one call (sigma2, v_s and p0 = G_a / (G_a + G_b)),
     # in logs (p0's a_p = 0.1 underflows a plain gamma): one compiled rejection loop, not four.
-    shapes = jnp.stack([prior.a_sigma + 0.5 * stats.n, prior.a_v + 0.5 * r, prior.a_p + r, prior.b_p + K - r])
+    terms = jnp.sum(present_terms(stats)).astype(dtype)
+    shapes = jnp.stack([prior.a_sigma + 0.5 * stats.n, prior.a_v + 0.5 * r, prior.a_p + r, prior.b_p + terms - r])
     log_g = jax.random.loggamma(k_gamma, shapes.astype(dtype), dtype=dtype)
 
     def refactor(_):
@@ -508,11 +464,8 @@ def step(
     # Guard the log-odds against p0 rounding to exactly 0 or 1.
     p0 = jnp.clip(p0, 1e-300, 1.0 - 1e-16)
 
-    log_ml = _log_marginal(r, logdet, quad, state.v_s, stats, prior)
+    log_ml = log_marginal(r, logdet, quad, state.v_s, stats, prior)
     return GibbsState(gamma, theta, sigma2, v_s, p0), GibbsInfo(r, log_ml)
-
-
-# --- running chains ----------------------------------------------------------------------
 
 
 def run_chain(
@@ -525,250 +478,10 @@ def run_chain(
     swap: bool = True,
 ) -> tuple[GibbsState, GibbsTrace]:
     """``num_steps`` sweeps under ``lax.scan``; returns the last state and every draw."""
-    return _run_keys(jax.random.split(key, num_steps), state, stats, prior, max_active, swap)
+    return run_keys(jax.random.split(key, num_steps), state, stats, prior, max_active, swap)
 
 
-def sample(
-    key: jax.Array,
-    stats: SuffStats,
-    *,
-    num_draws: int = 2000,
-    num_burnin: int = 1000,
-    num_chains: int = 4,
-    prior: SpikeSlabPrior = SpikeSlabPrior(),
-    p0: float = 0.1,
-    v_s: float = 10.0,
-    max_active: int | None = None,
-    chain_method: str | None = None,
-    progress: bool = False,
-    init_strategy: str = "dispersed",
-    swap: bool = True,
-) -> GibbsTrace:
-    """Standardise, run ``num_chains`` chains (vmapped) and return draws in physical units.
-
-    Returns a :class:`GibbsTrace` with leading axes ``(num_chains, num_draws)``; ``theta`` is in
-    the units of ``y`` per unit of each library column and ``sigma2`` in units of ``y**2``.
-    ``init_strategy="dispersed"`` (default) starts chain 0 from the greedy forward selection
-    and the others from greedy selections among random halves of the library, so that chains
-    held in different modes disagree (per-chain PIPs, R-hat); ``"random"`` starts chain 1
-    empty and the others from random subsets; ``"greedy"`` starts every chain from the greedy
-    state (see :func:`initial_indicators`). Each chain's ``theta`` and ``sigma2`` start as
-    :func:`init` sets them for its indicators.
-    ``chain_method`` is ``"vectorized"`` (vmap over chains) or ``"sequential"`` (``lax.map``);
-    the default picks vectorized on accelerators and sequential on CPU, where XLA runs the
-    vmapped indicator loop 2-4x slower per chain (measured in benchmarks/sampler_speed.py).
-    Jittable and vmappable (over ``key`` and ``stats``) when ``progress`` is False.
-    ``progress``: show a progress bar of the sweeps (runs :func:`sample_in_chunks`, whose
-    draws are the same). ``swap``: each sweep ends with an exchange move between correlated
-    terms (:func:`_swap`); False runs the plain Gibbs sweep.
-    """
-    if progress:
-        from dtwin_jax.progress import Bar, tick
-
-        total = num_burnin + num_draws
-        with Bar(True, num_chains * -(-total // CHUNK) * CHUNK, "Gibbs sweeps"):
-            trace = sample_in_chunks(key, stats, num_draws=num_draws, num_burnin=num_burnin, num_chains=num_chains,
-                                     prior=prior, p0=p0, v_s=v_s, max_active=max_active, chain_method=chain_method,
-                                     init_strategy=init_strategy, on_chunk=tick, swap=swap)
-        return jax.tree.map(jnp.asarray, trace)
-    scaled, col, ys = standardize(stats)
-    total = num_burnin + num_draws
-    keys, states = _setup(key, scaled, prior, p0, v_s, max_active, num_chains, total, init_strategy)
-    _, trace = _run_chains(keys, states, scaled, prior, max_active, chain_method or default_batch_method(), swap)
-    trace = jax.tree.map(lambda a: a[:, num_burnin:], trace)
-    factor = ys / col
-    return trace._replace(theta=trace.theta * factor, sigma2=trace.sigma2 * ys**2)
-
-
-# Sweeps per call of :func:`sample_in_chunks`' compiled program: ~11 ms of work at K = 36,
-# against ~0.1 ms to dispatch a call.
-CHUNK = 250
-
-
-def _plain_call(name, fn, args, static=(), unflatten=None):
-    return fn(*args)
-
-
-def sample_in_chunks(
-    key: jax.Array,
-    stats: SuffStats,
-    *,
-    num_draws: int = 2000,
-    num_burnin: int = 1000,
-    num_chains: int = 4,
-    prior: SpikeSlabPrior = SpikeSlabPrior(),
-    p0: float = 0.1,
-    v_s: float = 10.0,
-    max_active: int | None = None,
-    chain_method: str | None = None,
-    init_strategy: str = "dispersed",
-    chunk: int = CHUNK,
-    on_chunk=None,
-    call=_plain_call,
-    quick: bool = False,
-    swap: bool = True,
-) -> GibbsTrace:
-    """:func:`sample` run from Python in calls of ``chunk`` sweeps: the same draws (as host
-    arrays, leading axes ``(num_chains, num_draws)``), from compiled programs that depend
-    on K, ``num_chains`` and ``chunk`` but not on ``num_draws`` or ``num_burnin``, so
-    updates with other lengths reuse them (compiling one takes seconds; a chunk at K = 36,
-    milliseconds). The last chunk is padded; its extra sweeps are dropped.
-
-    Not jittable (use :func:`sample` inside ``jit``). ``on_chunk(sweeps)`` is called after
-    every chunk with the number of sweeps it ran over all chains (a progress bar).
-    ``call(name, fn, args, static, unflatten)`` runs each program: :func:`dtwin_jax._compile.aot.call`
-    keeps them for new processes; the default calls ``fn(*args)``. ``quick``: the chunk
-    program compiled without LLVM's optimizations (:mod:`dtwin_jax._compile.quick_compile`): the same
-    indicators, coefficients to rounding; for short runs, where its compilation outweighs
-    its run. ``swap``: as in :func:`sample`.
-    """
-    scaled, col, ys, keys, states, run, static = _chunk_start(
-        key, stats, num_draws=num_draws, num_burnin=num_burnin, num_chains=num_chains, prior=prior, p0=p0, v_s=v_s,
-        max_active=max_active, chain_method=chain_method, init_strategy=init_strategy, chunk=chunk, quick=quick,
-        call=call, swap=swap)
-    total = num_burnin + num_draws
-    parts = []
-    for i in range(keys.shape[1] // chunk):
-        states, trace = call(
-            "sampler_chunk", lambda k, s, st: run(k, s, st, *static),
-            (keys[:, i * chunk : (i + 1) * chunk], states, scaled), static=static,
-            unflatten=lambda leaves: (GibbsState(*leaves[:5]), GibbsTrace(*leaves[5:])),
-        )
-        parts.append(trace)
-        if on_chunk is not None:
-            jax.block_until_ready(trace)
-            on_chunk(num_chains * chunk)
-    trace = GibbsTrace(*(np.concatenate([np.asarray(p[i]) for p in parts], axis=1)[:, num_burnin:total]
-                         for i in range(len(GibbsTrace._fields))))
-    factor = np.asarray(ys) / np.asarray(col)
-    return trace._replace(theta=trace.theta * factor, sigma2=trace.sigma2 * float(ys) ** 2)
-
-
-def compile_chunked(K: int, **settings) -> None:
-    """Compile the programs :func:`sample_in_chunks` runs for ``K`` terms and ``settings``
-    (its keyword arguments), so that a later call with float64 statistics compiles nothing:
-    the set-up and keys run on a K-term identity problem (milliseconds), the chunk program is
-    lowered and compiled, not run. For a worker thread while the caller builds the statistics
-    (:mod:`dtwin_jax._compile.ahead`)."""
-    stats = SuffStats(*(jnp.asarray(a, jnp.float64) for a in (np.eye(K), np.zeros(K), 1.0, 2.0 * K)))
-    key = jax.random.split(jax.random.key(0))[0]  # typed like the keys the callers split
-    bound = inspect.signature(sample_in_chunks).bind(key, stats, **settings)
-    bound.apply_defaults()  # sample_in_chunks' defaults, kept in one place
-    args = {k: v for k, v in bound.arguments.items() if k not in ("key", "stats", "on_chunk")}
-    scaled, _, _, keys, states, run, static = _chunk_start(key, stats, **args)
-    run.lower(keys[:, : args["chunk"]], states, scaled, *static).compile()
-
-
-def _chunk_start(key, stats, *, num_draws, num_burnin, num_chains, prior, p0, v_s, max_active, chain_method,
-                 init_strategy, chunk, quick, call=_plain_call, swap=True) -> tuple:
-    """:func:`sample_in_chunks`' set-up: ``(scaled, col, ys, keys (C, chunks * chunk),
-    states, run, static)``, ``run(keys, states, scaled, *static)`` the chunk program."""
-    settings = (prior, float(p0), float(v_s), max_active, num_chains, init_strategy)
-    scaled, col, ys, keys, states = call(
-        "sampler_setup", lambda k, st: _setup_chunked(k, st, *settings), (key, stats), static=settings,
-        unflatten=lambda leaves: (SuffStats(*leaves[:4]), leaves[4], leaves[5], leaves[6], GibbsState(*leaves[7:])),
-    )
-    total = num_burnin + num_draws
-    keys = _step_keys(keys, total, -(-total // chunk) * chunk)
-    run = _run_chains_quick if quick else _run_chains_jit
-    return scaled, col, ys, keys, states, run, (prior, max_active, chain_method or default_batch_method(), swap)
-
-
-@quick_jit(static_argnums=(2, 3, 4, 5, 6, 7))
-def _setup_chunked(key, stats, prior, p0, v_s, max_active, num_chains, init_strategy):
-    """:func:`sample`'s set-up but for the per-sweep keys: scaled statistics, scales, one
-    key per chain and the starting states."""
-    scaled, col, ys = standardize(stats)
-    states = _starting_states(key, scaled, prior, p0, v_s, max_active, num_chains, init_strategy)
-    return scaled, col, ys, jax.random.split(key, num_chains), states
-
-
-@quick_jit(static_argnums=(1, 2))
-def _step_keys(chain_keys, total: int, padded: int):
-    """``(C, padded)`` per-sweep keys: :func:`sample`'s ``total`` keys per chain, then the
-    last one repeated (sweeps that are run and dropped)."""
-    keys = jax.vmap(lambda k: jax.random.split(k, total))(chain_keys)
-    return jnp.concatenate([keys, jnp.repeat(keys[:, -1:], padded - total, axis=1)], axis=1)
-
-
-def initial_indicators(
-    key: jax.Array,
-    stats: SuffStats,
-    num_chains: int,
-    prior: SpikeSlabPrior = SpikeSlabPrior(),
-    *,
-    p0: float = 0.1,
-    v_s: float = 10.0,
-    max_active: int | None = None,
-    strategy: str = "dispersed",
-) -> jax.Array:
-    """Starting indicators of ``num_chains`` chains, ``(num_chains, K)`` bool.
-
-    Every strategy starts chain 0 from the greedy forward selection (as :func:`init`).
-    Chains c >= 1:
-
-    * ``"dispersed"``: the greedy selection, of at most ``max(1, R // 4)`` terms
-      (``R = max_active``), among a random half of the library (each term kept with
-      probability 1/2). Where the best model's terms are left out, the chain starts at the
-      best model made of the others: a locally good alternative, the kind of second mode a
-      single greedy start hides.
-    * ``"random"``: chain 1 the empty model, chains c >= 2 a uniformly random subset of size
-      uniform on ``1..min(R, K // 2)``. On large collinear libraries the first sweeps from
-      such a start can fill the model up to the cap ``R`` with poor terms, where it stays
-      (the sweep only adds below the cap): on example 2 (K = 258) 1 in 18 chains from the
-      empty model and 3 in 24 from random subsets were still there after 1500 sweeps.
-    * ``"greedy"``: the greedy selection for every chain.
-
-    Random choices come from ``key``. Pure and jittable; ``num_chains`` is static.
-    """
-    if strategy not in ("dispersed", "random", "greedy"):
-        raise ValueError(f"unknown init_strategy {strategy!r} (dispersed, random or greedy)")
-    K = stats.gram.shape[0]
-    R = _max_active(K, max_active)
-    dtype = stats.gram.dtype
-    p0, v_s = jnp.asarray(p0, dtype), jnp.asarray(v_s, dtype)
-    if strategy == "greedy" or num_chains == 1:
-        return jnp.broadcast_to(_greedy_gamma(stats, prior, p0, v_s, R), (num_chains, K))
-    if strategy == "dispersed":
-        # Chains c >= 1: the greedy selection among a random half, stopped at R // 4 terms: a
-        # start at the cap R cannot take in a better term (the sweep only adds below the cap);
-        # on example 2's 258-term library 1 in 36 uncapped starts stayed at the cap,
-        # log p(y | gamma) 320 below the mode, and none of 72 capped. All chains' selections
-        # run as one vmapped loop (one compiled program).
-        halves = jax.vmap(lambda k: jax.random.bernoulli(k, 0.5, (K,)))(jax.random.split(key, num_chains - 1))
-        allowed = jnp.concatenate([jnp.ones((1, K), bool), halves])
-        caps = jnp.asarray([R] + [max(1, R // 4)] * (num_chains - 1))
-        return jax.vmap(lambda a, c: _greedy_gamma(stats, prior, p0, v_s, c, allowed=a))(allowed, caps)
-    largest = min(R, K // 2)
-
-    def random_subset(k):
-        k_size, k_perm = jax.random.split(k)
-        size = jax.random.randint(k_size, (), 1, largest + 1) if largest > 0 else 0
-        # The first ``size`` terms of a random permutation: every subset of that size equally likely.
-        return jnp.zeros(K, bool).at[jax.random.permutation(k_perm, K)].set(jnp.arange(K) < size)
-
-    greedy = _greedy_gamma(stats, prior, p0, v_s, R)
-    others = jax.vmap(random_subset)(jax.random.split(key, num_chains - 2))
-    return jnp.concatenate([greedy[None], jnp.zeros((1, K), bool), others])
-
-
-def _starting_states(key, scaled, prior, p0, v_s, max_active, num_chains, init_strategy):
-    # The starting states draw from a key folded off ``key``, so the chains' own keys (and
-    # with ``init_strategy="greedy"`` the draws) are those of a greedy-only sampler.
-    gammas = initial_indicators(
-        jax.random.fold_in(key, 1), scaled, num_chains, prior,
-        p0=p0, v_s=v_s, max_active=max_active, strategy=init_strategy,
-    )
-    return jax.vmap(lambda g: init(scaled, prior, p0=p0, v_s=v_s, gamma=g))(gammas)
-
-
-def _setup(key, scaled, prior, p0, v_s, max_active, num_chains, total, init_strategy="dispersed"):
-    states = _starting_states(key, scaled, prior, p0, v_s, max_active, num_chains, init_strategy)
-    keys = jax.vmap(lambda k: jax.random.split(k, total))(jax.random.split(key, num_chains))
-    return keys, states
-
-
-def _run_keys(keys, state, stats, prior, max_active=None, swap=True):
+def run_keys(keys, state, stats, prior, max_active=None, swap=True):
     """Like :func:`run_chain` but from explicit per-step keys."""
 
     def one(state, key):
@@ -776,36 +489,3 @@ def _run_keys(keys, state, stats, prior, max_active=None, swap=True):
         return state, GibbsTrace(state.gamma, state.theta, state.sigma2, state.v_s, state.p0, info.log_marginal)
 
     return jax.lax.scan(one, state, keys)
-
-
-def default_batch_method() -> str:
-    """``"vectorized"`` on GPU/TPU, ``"sequential"`` on CPU."""
-    return "sequential" if jax.default_backend() == "cpu" else "vectorized"
-
-
-def batch_map(fn, method: str, *args):
-    """``fn`` over the leading axis of ``args``: ``jax.vmap`` or ``lax.map`` by ``method``."""
-    if method == "vectorized":
-        return jax.vmap(fn)(*args)
-    if method == "sequential":
-        return jax.lax.map(lambda a: fn(*a), args)
-    raise ValueError(f"unknown batch method {method!r} (vectorized or sequential)")
-
-
-def _run_chains(keys, states, stats, prior, max_active, method, swap=True):
-    return batch_map(lambda k, s: _run_keys(k, s, stats, prior, max_active, swap), method, keys, states)
-
-
-_run_chains_jit = jax.jit(_run_chains, static_argnums=(3, 4, 5, 6))
-# For short runs (a few terms, a few thousand sweeps): compiles in ~40% less time, runs ~2x longer.
-_run_chains_quick = quick_jit(static_argnums=(3, 4, 5, 6))(_run_chains)
-
-
-sample_jit = jax.jit(
-    sample,
-    static_argnames=(
-        "num_draws", "num_burnin", "num_chains", "prior", "max_active", "chain_method", "progress", "init_strategy",
-        "swap",
-    ),
-)
-sample_jit.__doc__ = "``jax.jit`` of :func:`sample` (``progress`` must be False)."

@@ -1,0 +1,37 @@
+"""Libraries padded to a few sizes, so that one compiled sampler serves every library of a
+size class instead of one program per K (compiling one takes seconds; running it, often
+less). The padding columns are zero: the kernel treats a zero column as no term
+(:mod:`dtwin_jax.sampler.kernel`), so the posterior of the real columns is unchanged; the
+random stream, and so the draws, depend on the padded size."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+__all__ = ["BUCKETS", "bucket", "pad_stats", "unpad_trace"]
+
+# Above the largest bucket a library keeps its size: padding it would cost more sweeps'
+# time than its one compilation.
+BUCKETS = (16, 32, 64, 128, 256)
+
+
+def bucket(K: int) -> int:
+    """The padded size of a K-term library."""
+    return next((b for b in BUCKETS if K <= b), K)
+
+
+def pad_stats(stats, size: int, xp=jnp):
+    """``SuffStats`` with ``size - K`` zero columns appended (``xp``: ``jax.numpy``, or
+    ``numpy`` on the host)."""
+    extra = size - stats.gram.shape[-1]
+    if extra == 0:
+        return stats
+    gram = xp.pad(stats.gram, [(0, 0)] * (stats.gram.ndim - 2) + [(0, extra), (0, extra)])
+    xty = xp.pad(stats.xty, [(0, 0)] * (stats.xty.ndim - 1) + [(0, extra)])
+    return type(stats)(gram, xty, stats.yty, stats.n)
+
+
+def unpad_trace(trace, K: int):
+    """A trace's ``gamma`` and ``theta`` cut back to the library's K columns."""
+    return trace._replace(gamma=trace.gamma[..., :K], theta=trace.theta[..., :K])
+
