@@ -10,6 +10,7 @@ from dtwin_jax.models import systems
 from dtwin_jax.preprocess.measurement import measure
 from dtwin_jax.preprocess.weak_form import (
     derivative_terms,
+    effective_share,
     weak_input_output_stats,
     weak_windows,
     window_quadrature,
@@ -146,3 +147,20 @@ def test_long_records_are_cut_into_segments():
     coef = np.linalg.solve(np.asarray(stats.gram[0]), np.asarray(stats.xty[0]))
     k = lib.names.index("x1**3")
     assert abs(coef[k] / ex.true_coefficients(lib.names)[0][k] - 1) < 1e-3
+
+
+def test_effective_share_is_one_where_the_fit_leaves_too_few_dimensions_and_finds_correlated_errors():
+    """A short record's 34 windows and a 46-term library: the least-squares residual is
+    rounding, whose ESS once gave 0.24 or 1.0 by the BLAS's thread count (and dropped a true
+    input term); the share is then 1. With rows to spare, an AR(1) error at 0.9 keeps about
+    (1 - 0.9) / (1 + 0.9) of them."""
+    rng = np.random.default_rng(0)
+    W = 34
+    assert effective_share(rng.normal(size=(1, W, 46)), rng.normal(size=(1, W)), np.eye(W)) == 1.0
+    W, phi = 4000, 0.9
+    e = np.zeros(W)
+    for i in range(1, W):
+        e[i] = phi * e[i - 1] + rng.normal()
+    L = rng.normal(size=(1, W, 5))
+    share = effective_share(L, L[..., 0] + e[None], np.eye(W))
+    assert 0.7 * (1 - phi) / (1 + phi) < share < 1.3 * (1 - phi) / (1 + phi), share

@@ -268,7 +268,13 @@ def reml_weight(L, Y, S_x, S_w) -> float:
 
 def effective_share(L, Y, cov) -> float:
     """``n_eff / n`` of the whitened rows: arviz's ESS of the whole library's least-squares
-    residual, summed over records, at most 1. ``L (R, W, K)``, ``Y (R, W)``, ``cov (W, W)``."""
+    residual, summed over records, at most 1. ``L (R, W, K)``, ``Y (R, W)``, ``cov (W, W)``.
+
+    Where the fit absorbs more than half the rows' dimensions (a short record's few windows
+    and a large library: 34 windows, 46 terms), the residual is mostly the fit's projection,
+    or rounding when nothing is left: its ESS says nothing about the errors (one record gave
+    0.24 or 1.0 by the BLAS's thread count), so the share is 1, the covariance's whitening
+    trusted."""
     import arviz_stats as az
     from scipy.linalg import solve_triangular
 
@@ -276,7 +282,9 @@ def effective_share(L, Y, cov) -> float:
     chol = np.linalg.cholesky(cov + 1e-10 * np.trace(cov) / W * np.eye(W))
     X = np.stack([solve_triangular(chol, L[r], lower=True) for r in range(R)])
     y = np.stack([solve_triangular(chol, Y[r], lower=True) for r in range(R)])
-    coef, *_ = np.linalg.lstsq(X.reshape(-1, K), y.reshape(-1), rcond=1e-10)
+    coef, _, rank, _ = np.linalg.lstsq(X.reshape(-1, K), y.reshape(-1), rcond=1e-10)
+    if R * W - rank < R * W / 2:
+        return 1.0
     resid = y - X @ coef
     n_eff = sum(float(az.ess(r[None], method="mean")) for r in resid)
     return float(min(n_eff / (R * W), 1.0))
