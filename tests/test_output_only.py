@@ -230,10 +230,9 @@ def test_noise_correction_margin_flags_noise_beyond_the_library():
     assert "noise too large" in margin_check(margins[1])["warnings"][0]
 
 
-def test_later_stages_compile_ahead_in_a_worker_thread_and_nothing_compiles_twice(lowered_programs):
-    """The diffusion likelihood, the residual checks and the samplers compile
-    in :class:`dtwin_jax._compile.ahead.Ahead`'s thread while earlier stages run; the stages then find
-    them compiled (a miss would lower the same program again in the main thread)."""
+def test_an_update_compiles_each_of_its_programs_once(lowered_programs):
+    """The drift passes, the samplers (both passes of the drift share one), the likelihood,
+    the regression and the checks: each program lowered once."""
     ex, t, x = _ensemble("example1", records=7, duration=0.301)  # shapes no other test compiles
     update_output_only(ex.system.nominal, t, x, library="poly:2", settings=FAST)
     ours = {"jit(drift_pass)", "jit(_setup_program)", "jit(_run_chains)", "jit(first_pass_estimate)",
@@ -241,7 +240,5 @@ def test_later_stages_compile_ahead_in_a_worker_thread_and_nothing_compiles_twic
             "jit(standardized_innovations)"}
     lowered = [entry for entry in lowered_programs if entry[1] in ours]
     assert len(lowered) == len({(name, shapes) for _, name, shapes in lowered}), lowered  # none twice
-    ahead = [name for thread, name, _ in lowered if thread.startswith("dtwin-compile-ahead")]
-    for name in ("jit(diffusion_mle)", "jit(standardized_innovations)"):
-        # in the worker, and once: shapes the worker guessed wrong would be lowered again
-        assert ahead.count(name) == 1 and [n for _, n, _ in lowered].count(name) == 1, (name, lowered)
+    for name in ("jit(drift_pass)", "jit(diffusion_mle)", "jit(standardized_innovations)"):
+        assert [n for _, n, _ in lowered].count(name) == 1, (name, lowered)

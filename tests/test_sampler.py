@@ -239,18 +239,3 @@ def test_disagreeing_chains_are_visible_and_greedy_strategy_keeps_chain_keys():
     assert post.pip_per_chain.shape == (2, L.shape[1])
     assert post.pip_chain_spread_max > 0.9 and np.argmax(post.pip_chain_spread) == 4
     assert np.nanmax(post.rhat_gamma()) > 1.5
-
-
-def test_compile_chunked_leaves_nothing_for_sample_in_chunks_to_compile(lowered_programs):
-    """What :func:`sampler.compile_chunked` compiles (a worker thread's job during an update)
-    is what :func:`sampler.sample_in_chunks` then runs, for K = 17, 3 chains and at most 20
-    terms, which no other test uses."""
-    L, y, _ = _problem(K=17)
-    st = S.SuffStats(*(jnp.asarray(a, dtype=jnp.float64) for a in S.suff_stats(L, y)))
-    settings = S.SamplerSettings(num_draws=300, num_burnin=200, num_chains=3, max_active=20)
-    S.compile_chunked(17, settings)
-    ahead = [name for _, name, _ in lowered_programs]
-    trace = S.sample_in_chunks(jax.random.key(1), st, settings)
-    assert {"jit(_run_chains)", "jit(_setup_program)"} <= set(ahead), ahead
-    assert [name for _, name, _ in lowered_programs] == ahead  # sample_in_chunks compiled none of its programs
-    assert trace.gamma.shape == (3, 300, 17)

@@ -1,4 +1,6 @@
 """Compile-speed tricks, private to the package: exported programs kept beside the persistent
-cache (``aot``), programs compiled in a worker thread ahead of their stage (``ahead``), and
-programs compiled without LLVM's optimizations where that is faster overall
-(``quick_compile``). Science modules call them; users never need to."""
+cache (``aot``), libraries padded to a few sizes so that one sampler program serves each
+(``buckets``), and short-running programs compiled without LLVM's optimizations
+(``quick_compile``). Science modules use them through decorators and the sampler's driver;
+no science function takes a trick parameter, and users never need them
+(``benchmarks/tricks.py`` measures each against plain ``jit`` with the persistent cache)."""

@@ -1,7 +1,7 @@
 """Programs that run once per call for microseconds to milliseconds (a sampler's set-up, its
 per-sweep keys, the output-only first guesses) compile without LLVM's optimizations: about
 half the compilation, the same bits out in the cases measured, and runs 1.5x longer, which
-at their size nobody sees (README, Performance: compiling less). Long-running programs (the
+at their size nobody sees (docs/performance.md, compiling less). Long-running programs (the
 sampler's chunks, the filters, simulations) keep XLA's defaults: at level 0 they run 2-10x
 longer."""
 
@@ -29,7 +29,7 @@ def quick_jit(static_argnums=()):
             traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree.leaves(args))
             return (fun if traced else compiled)(*args)
 
-        call.lower = compiled.lower  # to compile ahead of a call (dtwin_jax._compile.ahead)
+        call.lower = compiled.lower
         return call
 
     return wrap

@@ -116,14 +116,6 @@ class Linearization(NamedTuple):
     jac: jax.Array  # (N-1, m, m) dF/dX at point_k
     unit_cov: jax.Array  # (N-1, d, m, m)
 
-    @classmethod
-    def shapes(cls, y, d: int) -> "Linearization":
-        """Shapes and dtype of the linearizations of records `y (P, L, m)` with `d`
-        velocities (:func:`linearize`'s output), to compile ahead of having them."""
-        P, L, m = y.shape
-        f = lambda *shape: jax.ShapeDtypeStruct(shape, y.dtype)
-        return cls(f(P, L, m), f(P, L - 1, m), f(P, L - 1, m, m), f(P, L - 1, d, m, m))
-
 
 # Samples per block of :func:`linearize`: vmapped over all samples at once (300 records of
 # 1000), the Runge-Kutta stages' buffers leave the cache and the step's Jacobian took 5x longer.

@@ -13,9 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax import sampler
 from dtwin_jax._compile import aot
-from dtwin_jax._compile.ahead import Ahead
 from dtwin_jax.checks import residual_checks
 from dtwin_jax.collinearity import collinearity_checks
 from dtwin_jax.data import check_records, state_range
@@ -124,58 +122,46 @@ def update_output_only(
     if previous is not None and previous.preprocessing.get("diffusion_library") != dlib.spec:
         raise DataError(f"re-update needs the previous diffusion library '{previous.preprocessing.get('diffusion_library')}'")
     stages = Stages(progress, 5, "output-only update")
-    with Ahead() as ahead:
-        # The drift sampler's programs depend on the library's size only: compiled beside
-        # the drift statistics' program.
-        for run in (first_pass_settings(settings), settings):
-            ahead.submit(sampler.compile_chunked, lib.K, run)
-        R, N, m = rec.x.shape
-        dt = rec.dt
-        with stages("drift statistics (Kramers-Moyal)"):
-            noise_var = kramers_moyal.noise_variance(rec.x)
-            check_columns(np.asarray(lib(rec.x.reshape(-1, m)[:: max(1, R * N // 20000)])), lib.names)
-            drift_stats, margin = drift_statistics(nominal, lib, rec.x, dt, noise_var, settings, seed)
-            drift_stats = jax.block_until_ready(with_previous(drift_stats, "drift", previous, forget))
-        names = nominal.state_names
-        regressed = [names[i] for i in nominal.regressed_index]
-        with stages("drift sampling"):
-            trace = jax.block_until_ready(sample_equations(drift_stats, settings, seed, progress))
-            drift = posteriors(trace, regressed, "drift", lib.names, pip_threshold)
-        with stages("diffusion likelihood (Kalman)"):
-            # One step's mean drift: friction's sign averaged over half a step's Brownian increment.
-            residual_var = np.array([e.sigma2.mean() for e in drift])
-            gamma_drift = brownian_variance(nominal, dt, noise_var, residual_var)
-            step_smoothing = np.zeros(m)  # on the host: each eager jnp operation compiles a program
-            step_smoothing[np.asarray(nominal.velocity_index)] = 0.5 * dt * np.asarray(gamma_drift)
-            step = statespace.DriftStep.from_coefficients(
-                nominal, lib, np.stack([e.coefficients for e in drift]), dt, jnp.asarray(step_smoothing)
-            )
-            # The likelihood's program depends on the drift's terms; it compiles beside the
-            # pre-averaged first guess, the diffusion sampler and the checks while it runs
-            # (the regression after it compiles here: the worker would come to it too late).
-            y = statespace.segments(rec.x)  # for the worker (diffusion_statistics cuts its own)
-            vel = tuple(int(v) for v in nominal.velocity_index)
-            ahead.submit(_compile_likelihood, step, y, noise_var, vel)
-            ahead.submit(sampler.compile_chunked, dlib.K, settings)
-            ahead.submit(_compile_checks, y, vel)
-            fit = diffusion_statistics(step, dlib, rec.x, noise_var)
-            check_columns(np.asarray(fit.columns), dlib.names)
-            gamma, fitted_noise, lin, y = fit.gamma, fit.noise, fit.lin, fit.segments
-            gamma_var = np.diag(np.asarray(fit.gamma_cov))
-            stats = jax.block_until_ready(with_previous(fit.stats, "diffusion", previous, forget))
-        with stages("diffusion sampling"):
-            trace = sample_equations(stats, settings, seed + 1, progress)
-            velocities = [names[i] for i in nominal.velocity_index]
-            diffusion = posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
-        # The drift's posterior-predictive check: one-step innovations of the velocities under
-        # the fitted drift and diffusion, white and unpredictable from the past when it fits.
-        with stages("residual checks"), stages:
-            innov, predicted = statespace.standardized_innovations(lin, y, fitted_noise, gamma, vel)
-            predicted = np.asarray(predicted)
-            checks = {
-                names[v]: residual_checks(np.asarray(innov[..., j]), predicted, vel, names)
-                for j, v in enumerate(vel)
-            }
+    R, N, m = rec.x.shape
+    dt = rec.dt
+    with stages("drift statistics (Kramers-Moyal)"):
+        noise_var = kramers_moyal.noise_variance(rec.x)
+        check_columns(np.asarray(lib(rec.x.reshape(-1, m)[:: max(1, R * N // 20000)])), lib.names)
+        drift_stats, margin = drift_statistics(nominal, lib, rec.x, dt, noise_var, settings, seed)
+        drift_stats = jax.block_until_ready(with_previous(drift_stats, "drift", previous, forget))
+    names = nominal.state_names
+    regressed = [names[i] for i in nominal.regressed_index]
+    with stages("drift sampling"):
+        trace = jax.block_until_ready(sample_equations(drift_stats, settings, seed, progress))
+        drift = posteriors(trace, regressed, "drift", lib.names, pip_threshold)
+    with stages("diffusion likelihood (Kalman)"):
+        # One step's mean drift: friction's sign averaged over half a step's Brownian increment.
+        residual_var = np.array([e.sigma2.mean() for e in drift])
+        gamma_drift = brownian_variance(nominal, dt, noise_var, residual_var)
+        step_smoothing = np.zeros(m)  # on the host: each eager jnp operation compiles a program
+        step_smoothing[np.asarray(nominal.velocity_index)] = 0.5 * dt * np.asarray(gamma_drift)
+        step = statespace.DriftStep.from_coefficients(
+            nominal, lib, np.stack([e.coefficients for e in drift]), dt, jnp.asarray(step_smoothing)
+        )
+        vel = tuple(int(v) for v in nominal.velocity_index)
+        fit = diffusion_statistics(step, dlib, rec.x, noise_var)
+        check_columns(np.asarray(fit.columns), dlib.names)
+        gamma, fitted_noise, lin, y = fit.gamma, fit.noise, fit.lin, fit.segments
+        gamma_var = np.diag(np.asarray(fit.gamma_cov))
+        stats = jax.block_until_ready(with_previous(fit.stats, "diffusion", previous, forget))
+    with stages("diffusion sampling"):
+        trace = sample_equations(stats, settings, seed + 1, progress)
+        velocities = [names[i] for i in nominal.velocity_index]
+        diffusion = posteriors(trace, velocities, "diffusion", dlib.names, pip_threshold)
+    # The drift's posterior-predictive check: one-step innovations of the velocities under
+    # the fitted drift and diffusion, white and unpredictable from the past when it fits.
+    with stages("residual checks"), stages:
+        innov, predicted = statespace.standardized_innovations(lin, y, fitted_noise, gamma, vel)
+        predicted = np.asarray(predicted)
+        checks = {
+            names[v]: residual_checks(np.asarray(innov[..., j]), predicted, vel, names)
+            for j, v in enumerate(vel)
+        }
     for state, mg in zip(regressed, np.asarray(margin)):
         checks[f"{state} noise correction"] = margin_check(float(mg))
     checks.update(collinearity_checks(drift_stats, drift))
@@ -253,16 +239,3 @@ def margin_check(margin: float) -> dict:
         "and coefficients unreliable (use fewer terms, more records or less noisy sensors)"
     )
     return {"ok": bool(ok), "warnings": [] if ok else [warning], "min_eigenvalue": float(margin)}
-
-
-def _compile_likelihood(step: statespace.DriftStep, y, noise_var, vel: tuple[int, ...]) -> None:
-    """Compile the diffusion likelihood for the drift ``step`` and segments ``y (P, L, m)``."""
-    statespace.diffusion_mle.lower(step, y, noise_var, jnp.ones(len(vel), y.dtype)).compile()
-
-
-def _compile_checks(y, vel: tuple[int, ...]) -> None:
-    """Compile the residual checks' innovations for segments ``y (P, L, m)``."""
-    P, _, m = y.shape
-    gamma, noise = jax.ShapeDtypeStruct((len(vel),), y.dtype), jax.ShapeDtypeStruct((P, m), y.dtype)
-    statespace.standardized_innovations.lower(statespace.Linearization.shapes(y, len(vel)), y, noise, gamma,
-                                              vel).compile()

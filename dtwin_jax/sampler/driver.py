@@ -35,7 +35,6 @@ __all__ = [
     "sample",
     "sample_jit",
     "sample_in_chunks",
-    "compile_chunked",
     "CHUNK",
     "default_batch_method",
     "batch_map",
@@ -148,19 +147,6 @@ def sample_in_chunks(key: jax.Array, stats: SuffStats, settings: SamplerSettings
     trace = unpad_trace(trace, K)
     return trace._replace(theta=trace.theta * (np.asarray(ys) / np.asarray(col)[:K]),
                           sigma2=trace.sigma2 * float(ys) ** 2)
-
-
-def compile_chunked(K: int, settings: SamplerSettings | None = None, **overrides) -> None:
-    """Compile the programs :func:`sample_in_chunks` runs for a K-term library, so that a
-    later call compiles nothing: the set-up and keys run on an identity problem
-    (milliseconds), the chunk program is lowered and compiled, not run. A worker thread's
-    job while the caller builds the statistics (:mod:`dtwin_jax._compile.ahead`)."""
-    s = _settings(settings, overrides)
-    size = bucket(K)
-    stats = SuffStats(*(jnp.asarray(a, jnp.float64) for a in (np.eye(size), np.zeros(size), 1.0, 2.0 * size)))
-    key = jax.random.split(jax.random.key(0))[0]  # typed like the keys the callers split
-    scaled, _, _, keys, states = _chunk_setup(key, stats, s)
-    _run_chains_jit.lower(keys[:, :CHUNK], states, scaled, *_chunk_static(s)).compile()
 
 
 def _chunk_setup(key, stats: SuffStats, s: SamplerSettings):
