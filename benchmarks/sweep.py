@@ -15,10 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dtwin_jax import studies
+from dtwin_jax import SamplerSettings, studies
 from dtwin_jax.io import write_json
 from dtwin_jax.plots import plot_noise_sweep
-from dtwin_jax import SamplerSettings
 
 
 def timed(example, levels, mode, args, settings):

@@ -17,17 +17,13 @@ output-only on example 1's ensemble (20 records of 1 s, 5% noise, `.npz`). Write
 
 import argparse
 import os
-import platform
 import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
-
-NOMINAL = "M = [[1.0]]\nC = [[2.0]]\nK = [[1000.0]]\nB = [[0.5]]\n"
+from shell_timing import example1_files, report, timed
 
 # Each variant's launcher turns one trick off before the command runs.
 OFF = {
@@ -37,30 +33,17 @@ OFF = {
 }
 
 
-def _timed(cmd, env) -> float:
-    start = time.perf_counter()
-    subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    return time.perf_counter() - start
-
-
 def _data(folder: Path) -> tuple[Path, Path]:
     import jax
 
-    from dtwin_jax import measure
     from dtwin_jax.models import systems
     from dtwin_jax.preprocess.measurement import add_noise
 
-    ex = systems.example1()
-    sim = systems.simulate_example(ex, jax.random.key(0))
-    meas = measure(jax.random.key(1), sim["t"], sim["x"], sim["xdot"], sim["u"], level=0.05)
-    rows = np.column_stack([np.asarray(meas.t), np.asarray(meas.x), np.asarray(meas.u)])
-    io = folder / "io.csv"
-    io.write_text("t,x1,x2,u1\n" + "\n".join(",".join(f"{v:.10g}" for v in r) for r in rows) + "\n")
-    oo_ex = ex.for_output_only()
+    io = example1_files(folder)
+    oo_ex = systems.example1().for_output_only()
     sde = systems.simulate_example_sde(oo_ex, jax.random.key(0), num_records=20)
     oo = folder / "oo.npz"
     np.savez(oo, t=np.asarray(sde["t"]), x=np.asarray(add_noise(jax.random.key(1), sde["x"], 0.05)))
-    (folder / "nominal.toml").write_text(NOMINAL)
     return io, oo
 
 
@@ -73,31 +56,23 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         io, oo = _data(tmp)
-        for data in (io, oo):
+        for label, data in (("io", io), ("oo", oo)):
             for variant, off in OFF.items():
                 launch = f"{off}\nfrom dtwin_jax.cli import console_main; raise SystemExit(console_main())"
                 cold, warm = [], []
                 for r in range(a.repeats):
-                    cache = tmp / f"cache-{data.stem}-{variant.replace(' ', '')}-{r}"
+                    cache = tmp / f"cache-{label}-{variant.replace(' ', '')}-{r}"
                     env = {**os.environ, "DTWIN_JAX_CACHE": str(cache)}
                     cmd = [sys.executable, "-c", launch, "discover", str(data), "--nominal", str(tmp / "nominal.toml"),
                            "--quiet", "--out", str(tmp / "r.json")]
-                    cold.append(_timed(cmd, env))
-                    warm.append(_timed(cmd, env))
-                rows.append((data.stem, variant, statistics.median(cold), statistics.median(warm)))
+                    cold.append(timed(cmd, env))
+                    warm.append(timed(cmd, env))
+                rows.append((label, variant, statistics.median(cold), statistics.median(warm)))
                 print(rows[-1], flush=True)
-    host = platform.node() or "host"
-    text = (f"# Compile-speed tricks against plain `jit` with the persistent cache ({host}, {os.cpu_count()} cores, "
-            f"{'pinned' if len(os.sched_getaffinity(0)) == 1 else 'unpinned'})\n\n"
-            f"`python benchmarks/tricks.py --repeats {a.repeats}`: `dtwin-jax discover`, a fresh process per call; "
-            "io = example 1 input-output (1 s), oo = example 1 output-only (20 records x 1 s); medians.\n\n"
-            "| data | variant | cold (s) | warm (s) |\n|---|---|---|---|\n"
-            + "".join(f"| {d} | {v} | {c:.2f} | {w:.2f} |\n" for d, v, c, w in rows))
-    print(text)
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / f"tricks-{host}.md").write_text(text)
-
+    print(report(a.out, "tricks", "Compile-speed tricks against plain `jit` with the persistent cache",
+                 f"`python benchmarks/tricks.py --repeats {a.repeats}`: `dtwin-jax discover`, a fresh process per "
+                 "call; io = example 1 input-output (1 s), oo = example 1 output-only (20 records x 1 s); medians.",
+                 ["data", "variant", "cold (s)", "warm (s)"], rows))
 
 if __name__ == "__main__":
     main()
