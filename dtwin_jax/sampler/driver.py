@@ -119,15 +119,20 @@ CHUNK = 250
 
 def sample_in_chunks(key: jax.Array, stats: SuffStats, settings: SamplerSettings | None = None, *,
                      progress: bool = False, **overrides) -> GibbsTrace:
-    """:func:`sample` run from Python in calls of :data:`CHUNK` sweeps: the same draws, as
-    host arrays with leading axes ``(num_chains, num_draws)``.
+    """:func:`sample` run from Python in calls of :data:`CHUNK` sweeps, with the same draws.
 
     Its compiled programs depend on the library's size class, the chains and the prior, not
     on ``num_draws``, ``num_burnin`` or K within a class, so updates of other lengths and
     other libraries reuse them (compiling one takes seconds; a chunk at K = 36,
     milliseconds). The last chunk is padded; its extra sweeps are dropped. Not jittable (use
-    :func:`sample` inside ``jit``). ``progress``: a bar of the sweeps, advanced after each
-    chunk (an enclosing bar, if one is open).
+    :func:`sample` inside ``jit``).
+
+    **Arguments:** ``key``, ``stats``, ``settings`` and ``overrides`` as in :func:`sample`;
+    ``progress``: a bar of the sweeps, advanced after each chunk (an enclosing bar, if one
+    is open, counts them instead).
+
+    **Returns:** a :class:`~dtwin_jax.sampler.kernel.GibbsTrace` of host (numpy) arrays,
+    leading axes ``(num_chains, num_draws)``, in physical units as :func:`sample`'s.
     """
     s = _settings(settings, overrides)
     K = stats.gram.shape[-1]

@@ -109,19 +109,26 @@ class GibbsTrace(NamedTuple):
 
 
 def suff_stats(L: jax.Array, y: jax.Array) -> SuffStats:
-    """Sufficient statistics of ``L (N, K)`` and ``y (N,)``."""
+    """Sufficient statistics of one regression.
+
+    **Arguments:** ``L (N, K)`` the library's columns, ``y (N,)`` the target.
+
+    **Returns:** :class:`SuffStats` ``(L^T L (K, K), L^T y (K,), y^T y, N)``, float64.
+    """
     L = jnp.asarray(L, dtype=jnp.float64)
     y = jnp.asarray(y, dtype=jnp.float64)
     return SuffStats(L.T @ L, L.T @ y, y @ y, jnp.asarray(L.shape[0], dtype=jnp.float64))
 
 
 def standardize(stats: SuffStats) -> tuple[SuffStats, jax.Array, jax.Array]:
-    """Scale every column and the target to unit root-mean-square.
+    """Scale every column and the target to unit root-mean-square, so that the slab prior and
+    the inverse-gamma prior on ``sigma2`` mean the same thing whatever the units of the data.
 
-    Returns ``(scaled_stats, column_scale (K,), target_scale ())``. A coefficient ``beta`` of
-    the scaled problem is ``theta = beta * target_scale / column_scale`` in physical units and a
-    scaled variance ``s2`` is ``s2 * target_scale**2``. Scaling makes the slab prior and the
-    inverse-gamma prior on ``sigma2`` mean the same thing whatever the units of the data.
+    **Arguments:** ``stats``: :class:`SuffStats` (K terms; a zero column keeps scale 1).
+
+    **Returns:** ``(scaled_stats, column_scale (K,), target_scale ())``. A coefficient ``beta``
+    of the scaled problem is ``theta = beta * target_scale / column_scale`` in physical units
+    and a scaled variance ``s2`` is ``s2 * target_scale**2``.
     """
     col = jnp.sqrt(jnp.diagonal(stats.gram) / stats.n)
     col = jnp.where(col > 0, col, 1.0)
@@ -182,9 +189,21 @@ def init(
     gamma: jax.Array | None = None,
     max_active: int | None = None,
 ) -> GibbsState:
-    """Initial state: ``gamma`` by greedy forward selection (unless given), ``theta`` its
-    posterior mean, ``sigma2`` the residual variance, ``p0`` and ``v_s`` as given (the
-    paper's 0.1 and 10)."""
+    """The blackjax-style initial state.
+
+    **Arguments:**
+
+    - ``stats``: :class:`SuffStats` (standardised: :func:`standardize`).
+    - ``prior``: the :class:`SpikeSlabPrior`.
+    - ``p0``, ``v_s``: the starting inclusion probability and slab variance (the paper's 0.1
+      and 10).
+    - ``gamma``: ``(K,)`` bool starting indicators; None: the greedy forward selection
+      (:func:`dtwin_jax.sampler.starts.greedy_indicators`).
+    - ``max_active``: the largest model (default ``min(K, 32)``).
+
+    **Returns:** :class:`GibbsState` with ``theta`` the posterior mean given ``gamma`` and
+    ``sigma2`` the residual variance.
+    """
     p0 = jnp.asarray(p0, stats.gram.dtype)
     v_s = jnp.asarray(v_s, stats.gram.dtype)
     if gamma is None:  # starts builds on this module: imported here
@@ -419,12 +438,21 @@ def step(
     max_active: int | None = None,
     swap: bool = True,
 ) -> tuple[GibbsState, GibbsInfo]:
-    """One Gibbs sweep. Pure: the same key and state give the same result.
+    """One Gibbs sweep: the indicators in random order, then ``sigma2``, ``theta``, ``v_s``
+    and ``p0``. Pure: the same key and state give the same result.
 
-    ``max_active`` (static, default ``min(K, 32)``) caps the number of active terms; the
-    sampler then targets the prior truncated to models of at most that size. ``swap``
-    (static): after the indicator sweep, one Metropolis-Hastings exchange of an active term
-    for a correlated inactive one (:func:`_swap`); False gives the plain Gibbs sweep.
+    **Arguments:**
+
+    - ``key``: PRNG key.
+    - ``state``: the :class:`GibbsState` before the sweep.
+    - ``stats``: :class:`SuffStats` (standardised: :func:`standardize`).
+    - ``prior``: the :class:`SpikeSlabPrior`.
+    - ``max_active``: static, default ``min(K, 32)``: the largest model; the sampler then
+      targets the prior truncated to models of at most that size.
+    - ``swap``: static; after the indicator sweep, one Metropolis-Hastings exchange of an
+      active term for a correlated inactive one (:func:`_swap`); False: the plain Gibbs sweep.
+
+    **Returns:** ``(GibbsState, GibbsInfo)`` after the sweep.
     """
     k_ind, k_gamma, k_theta = jax.random.split(key, 3)
     K = stats.gram.shape[0]
@@ -477,7 +505,13 @@ def run_chain(
     max_active: int | None = None,
     swap: bool = True,
 ) -> tuple[GibbsState, GibbsTrace]:
-    """``num_steps`` sweeps under ``lax.scan``; returns the last state and every draw."""
+    """``num_steps`` sweeps of :func:`step` under ``lax.scan``.
+
+    **Arguments:** ``key``, ``state``, ``stats``, ``prior``, ``max_active``, ``swap`` as in
+    :func:`step`; ``num_steps`` (static) the number of sweeps.
+
+    **Returns:** ``(last GibbsState, GibbsTrace)``, the trace's leading axis ``num_steps``.
+    """
     return run_keys(jax.random.split(key, num_steps), state, stats, prior, max_active, swap)
 
 

@@ -30,8 +30,16 @@ def greedy_indicators(stats: SuffStats, prior: SpikeSlabPrior, p0, v_s, R, allow
     Starting from the empty model, add the term whose inclusion most increases
     ``log p(y | gamma, v_s) + log p(gamma | p0)`` until no addition helps. This replaces the
     paper's least-squares initialisation (Algorithm 1, steps 2-3), which breaks down when the
-    library is nearly collinear (K close to N, or exp/sin next to polynomials). ``allowed``
-    ``(K,)`` bool restricts the candidates (default: every term); ``R`` caps the model size.
+    library is nearly collinear (K close to N, or exp/sin next to polynomials).
+
+    **Arguments:**
+
+    - ``stats``: :class:`SuffStats` (standardised), ``prior``: the :class:`SpikeSlabPrior`.
+    - ``p0``, ``v_s``: the inclusion probability and slab variance held fixed.
+    - ``R``: the largest model (may be traced).
+    - ``allowed``: ``(K,)`` bool, the candidates (default: every term; zero columns never).
+
+    **Returns:** ``(K,)`` bool indicators.
     """
     K = stats.gram.shape[0]
     G, b = stats.gram, stats.xty
@@ -88,7 +96,13 @@ def initial_indicators(
     max_active: int | None = None,
     strategy: str = "dispersed",
 ) -> jax.Array:
-    """Starting indicators of ``num_chains`` chains, ``(num_chains, K)`` bool.
+    """Starting indicators of ``num_chains`` chains.
+
+    **Arguments:** ``key`` (PRNG key for the random choices), ``stats`` (standardised
+    :class:`SuffStats`), ``num_chains`` (static), ``prior``, ``p0``, ``v_s``, ``max_active``
+    as in :func:`~dtwin_jax.sampler.kernel.init`, and ``strategy`` below.
+
+    **Returns:** ``(num_chains, K)`` bool.
 
     Every strategy starts chain 0 from the greedy forward selection (as :func:`init`).
     Chains c >= 1:
@@ -105,7 +119,7 @@ def initial_indicators(
       empty model and 3 in 24 from random subsets were still there after 1500 sweeps.
     * ``"greedy"``: the greedy selection for every chain.
 
-    Random choices come from ``key``. Pure and jittable; ``num_chains`` is static.
+    Pure and jittable. The caps count terms, not the zero columns a driver pads with.
     """
     if strategy not in ("dispersed", "random", "greedy"):
         raise ValueError(f"unknown init_strategy {strategy!r} (dispersed, random or greedy)")
@@ -145,8 +159,14 @@ def initial_indicators(
 
 
 def starting_states(key, scaled, prior, p0, v_s, max_active, num_chains, init_strategy) -> GibbsState:
-    """The chains' starting states ``(num_chains, ...)``: :func:`initial_indicators`, then
-    :func:`~dtwin_jax.sampler.kernel.init` for each."""
+    """The chains' starting states: :func:`initial_indicators`, then
+    :func:`~dtwin_jax.sampler.kernel.init` for each.
+
+    **Arguments:** as :func:`initial_indicators` (``scaled``: the standardised statistics;
+    ``init_strategy``: its ``strategy``).
+
+    **Returns:** :class:`GibbsState` with leading axis ``num_chains``.
+    """
     # The starting states draw from a key folded off ``key``, so the chains' own keys (and
     # with ``init_strategy="greedy"`` the draws) are those of a greedy-only sampler.
     gammas = initial_indicators(
