@@ -584,11 +584,13 @@ def console_main(argv=None) -> int:
 def _keep_interrupts(hook):
     """``sys.unraisablehook`` that raises a Ctrl-C again in the main thread: one that lands in a
     callback Python cannot raise from (jaxlib's garbage-collector callback) is otherwise
-    printed and lost, and the run goes on."""
+    printed and lost, and the run goes on. The new interrupt comes from another thread a
+    moment later, once the main thread has left the callback (raised from this hook itself,
+    it would be lost the same way); if it lands in such a callback again, so does the next."""
 
     def unraisable(info):
         if isinstance(info.exc_value, KeyboardInterrupt):
-            _thread.interrupt_main()
+            threading.Timer(0.01, _thread.interrupt_main).start()
         else:
             hook(info)
 
