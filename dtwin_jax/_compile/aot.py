@@ -61,7 +61,6 @@ def exported(name: str, static_argnums: tuple[int, ...] = ()) -> Callable:
 
             return call(name, bound, dynamic, static)
 
-        run.lower = getattr(fn, "lower", None)
         return run
 
     return wrap

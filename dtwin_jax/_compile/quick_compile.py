@@ -29,7 +29,6 @@ def quick_jit(static_argnums=()):
             traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree.leaves(args))
             return (fun if traced else compiled)(*args)
 
-        call.lower = compiled.lower
         return call
 
     return wrap
