@@ -11,6 +11,7 @@ every state.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 
@@ -175,6 +176,20 @@ def _one(twins: UpdatedTwin, coef, dcoef) -> UpdatedTwin:
     return eqx.tree_at(lambda t: (t.coefficients, t.diffusion_coefficients), twins, (coef, dcoef))
 
 
+def used_terms(twins: UpdatedTwin) -> UpdatedTwin:
+    """`twins` with the drift library cut to the terms some draw uses (the same rate: the
+    others are zero in every draw). The solver then evaluates a handful of terms at each
+    stage, not the whole library (example 2: 4 of 256). Traced coefficients: unchanged."""
+    try:
+        coef = np.asarray(twins.coefficients)
+    except jax.errors.TracerArrayConversionError:
+        return twins
+    used = np.any(coef.reshape(-1, coef.shape[-1]) != 0, axis=0)
+    if used.all():
+        return twins
+    return dataclasses.replace(twins, library=twins.library.subset(used), coefficients=jnp.asarray(coef[..., used]))
+
+
 def is_nonsmooth(twins: UpdatedTwin) -> bool:
     """True when a term of a non-smooth family (:data:`systems.NONSMOOTH_FAMILIES`: `sign`,
     `Abs`, `x*Abs`) is selected in some draw of `twins` (any such term in the library when
@@ -298,6 +313,7 @@ def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = 
 
     S = jnp.shape(twins.coefficients)[0]
     check_prediction(S, np.shape(t)[0], twins.nominal.m, option="draws")
+    twins = used_terms(twins)
     t = jnp.asarray(t, dtype=float)
     x0 = jnp.asarray(x0, dtype=float)
     if twins.stochastic:
