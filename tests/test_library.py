@@ -305,6 +305,20 @@ def test_hermite_polynomials_are_unbiased_for_monomials():
     np.testing.assert_allclose(mean, x[:, :, None] ** np.arange(13), rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize("m, spec", [(2, "poly:5"), (4, "poly:5"), (3, "poly:3"), (1, "poly:4")])
+def test_hermite_sums_by_halves_equal_the_sums_of_the_products(m, spec):
+    """The weighted sums of every pair's Hermite product, from one matrix product of the
+    two halves' distinct products (or directly for one state), equal the direct sums."""
+    from dtwin_jax.output_only.kramers_moyal import _hermite_products, _hermite_sums, _hermite_table, _monomials
+
+    _, exponents, pairs, _ = _monomials(parse_library(spec, m, 0))
+    rng = np.random.default_rng(m)
+    x, w = jnp.asarray(rng.normal(size=(500, m))), jnp.asarray(rng.uniform(size=500))
+    T = _hermite_table(x, jnp.full(m, 0.01), int(pairs.sum(axis=1).max()))
+    want = np.asarray(w @ _hermite_products(T, pairs))
+    np.testing.assert_allclose(np.asarray(_hermite_sums(T, pairs, w)), want, rtol=1e-11, atol=1e-11 * np.abs(want).max())
+
+
 def test_drift_statistics_derivatives_match_differentiation_of_the_whole_library():
     """The drift statistics' `d_j L`, `d_j^2 L` (monomials in closed form, block by block)
     equal forward-over-forward differentiation of the whole library, smoothed columns too."""

@@ -331,13 +331,22 @@ def _hermite_products(T, exponents):
     return jnp.prod(T[:, np.arange(m)[None, :], exponents], axis=-1)
 
 
-def _hermite_sums(T, exponents, weights, block: int = 256):
-    """`(G,)`: the `weights (P,)`-weighted sum over samples of :func:`_hermite_products`, in
-    blocks of monomials."""
-    return jnp.concatenate([
-        weights @ _hermite_products(T, exponents[i : i + block])
-        for i in range(0, exponents.shape[0], block)
-    ])
+def _hermite_sums(T, exponents, weights):
+    """`(G,)`: the `weights (P,)`-weighted sum over samples of :func:`_hermite_products`.
+
+    Each product splits into a factor of the first half of the states and one of the
+    second; the sums of all pairs of distinct half-products are one matrix product
+    (example 2: 1820 sums from 91 x 91 half-products, 0.27 s -> 0.02 s per 20000 samples),
+    unless the halves have so many distinct products that the direct sums are cheaper."""
+    half = T.shape[1] // 2
+    first, i = np.unique(exponents[:, :half], axis=0, return_inverse=True)
+    second, j = np.unique(exponents[:, half:], axis=0, return_inverse=True)
+    if not half or first.shape[0] * second.shape[0] > 8 * exponents.size:
+        return jnp.concatenate([weights @ _hermite_products(T, exponents[k : k + 256])
+                                for k in range(0, exponents.shape[0], 256)])
+    left = (weights[:, None] * _hermite_products(T[:, :half], first)).T
+    sums = left @ _hermite_products(T[:, half:], second)
+    return sums[i.reshape(-1), j.reshape(-1)]
 
 
 def _noise_corrected(fn, s2):
