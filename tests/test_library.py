@@ -309,7 +309,12 @@ def test_hermite_polynomials_are_unbiased_for_monomials():
 def test_hermite_sums_by_halves_equal_the_sums_of_the_products(m, spec):
     """The weighted sums of every pair's Hermite product, from one matrix product of the
     two halves' distinct products (or directly for one state), equal the direct sums."""
-    from dtwin_jax.output_only.kramers_moyal import _hermite_products, _hermite_sums, _hermite_table, _monomials
+    from dtwin_jax.output_only.kramers_moyal import (
+        _hermite_products,
+        _hermite_sums,
+        _hermite_table,
+        _monomials,
+    )
 
     _, exponents, pairs, _ = _monomials(parse_library(spec, m, 0))
     rng = np.random.default_rng(m)
