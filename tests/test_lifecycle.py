@@ -60,6 +60,28 @@ def test_save_load_predict_is_identical_for_one_key(saved):
     assert res.history[0]["prior"] == "spike-and-slab"
 
 
+def test_prediction_simulates_only_the_terms_some_draw_uses(saved):
+    """The solver evaluates the terms of the default 46-term library that some posterior draw
+    includes; under jit (traced coefficients) it evaluates all of them: the same paths."""
+    from dtwin_jax.models.prediction import used_terms
+
+    res = load_twin(saved / "twin")
+    twins = posterior_twins(res, 8, jax.random.key(1))
+    coef = np.asarray(twins.coefficients)
+    used = np.any(coef.reshape(-1, coef.shape[-1]) != 0, axis=0)
+    pruned = used_terms(twins)
+    assert 1 <= pruned.library.K == used.sum() < twins.library.K == 46
+    assert list(pruned.library.names) == [n for n, k in zip(twins.library.names, used) if k]
+    with np.load(saved / "new.npz") as z:
+        x0, t, u = z["x0"], z["t"][:500], z["u"][:500]
+    # Fixed steps for both (traced coefficients would make the default solver assume that
+    # the library's sign and Abs terms are used), so that only the terms evaluated differ.
+    fast = predict(twins, x0, t, u, substeps=4)
+    whole = jax.jit(lambda tw: predict(tw, x0, t, u, substeps=4))(twins)
+    for k in ("mean", "lower", "upper"):
+        np.testing.assert_allclose(np.asarray(fast[k]), np.asarray(whole[k]), rtol=1e-9, atol=1e-12)
+
+
 def test_update_appends_history_and_uses_the_posterior_as_prior(saved, tmp_path):
     first = load_twin(saved / "twin")
     assert main(["update", str(saved / "twin"), str(saved / "w2.npz"), "--out-twin", str(tmp_path / "t2")]
