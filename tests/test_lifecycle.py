@@ -82,6 +82,19 @@ def test_prediction_simulates_only_the_terms_some_draw_uses(saved):
         np.testing.assert_allclose(np.asarray(fast[k]), np.asarray(whole[k]), rtol=1e-9, atol=1e-12)
 
 
+def test_a_twin_with_no_term_in_any_draw_predicts_the_nominal_model():
+    from dtwin_jax.library import parse_library
+    from dtwin_jax.models.prediction import UpdatedTwin
+
+    nominal = systems.example1().system.nominal
+    lib = parse_library("poly:3,sign,input", 2, 1)
+    twins = UpdatedTwin(nominal, lib, tuple(int(i) for i in nominal.regressed_index), jax.numpy.zeros((4, 1, lib.K)))
+    t, u = np.arange(200) * 1e-3, np.random.default_rng(0).normal(size=(200, 1)) * 20.0
+    pred = predict(twins, np.zeros(2), t, u)
+    x, _ = systems.simulate(nominal, np.zeros(2), t, u)
+    np.testing.assert_allclose(np.asarray(pred["mean"]), np.asarray(x), rtol=0, atol=1e-8 * float(np.abs(x).max()))
+
+
 def test_update_appends_history_and_uses_the_posterior_as_prior(saved, tmp_path):
     first = load_twin(saved / "twin")
     assert main(["update", str(saved / "twin"), str(saved / "w2.npz"), "--out-twin", str(tmp_path / "t2")]
