@@ -1,13 +1,16 @@
-"""Where the test suite's time goes: every XLA compilation, by program and by test.
+"""Where the test suite's time goes: every trace, lowering and XLA compilation, by program
+and by test.
 
     COMPILE_LOG=/tmp/clog PYTHONPATH=benchmarks python -m pytest -p compile_log
     python benchmarks/compile_log.py /tmp/clog [--out benchmarks/results]
 
-As a pytest plugin (``-p compile_log``), each worker appends ``seconds, program, test`` for
-every XLA compilation to ``$COMPILE_LOG.<worker>`` (JAX's ``jax_log_compiles``; programs
-found in the persistent cache are not compiled and not logged). Run as a script, it sums
-the logs by program and by test into ``suite_compiles-<host>.md``. Subprocesses (the
-command-line tests, the notebooks' kernels) are not seen.
+As a pytest plugin (``-p compile_log``), each worker appends ``seconds, phase, program,
+test`` to ``$COMPILE_LOG.<worker>`` for every top-level trace (``trace``), lowering to MLIR
+(``lower``) and XLA compilation (``compile``) that JAX logs (``jax_log_compiles``), and a
+``hit`` row for every program found in the persistent cache (the ``compile`` row that
+follows it is then its load time, summed apart). Run as a script, it sums the logs by phase, by program and by test
+into ``suite_compiles-<host>.md``. Subprocesses (the command-line tests, the notebooks'
+kernels) are not seen.
 """
 
 import os
@@ -27,14 +30,26 @@ def pytest_configure(config):
     jax.config.update("jax_log_compiles", True)
     out = open(f"{os.environ['COMPILE_LOG']}.{os.environ.get('PYTEST_XDIST_WORKER', 'main')}", "a")
 
+    phases = (("trace", r"Finished tracing (.*) for jit in ([0-9.e-]+) sec"),
+              ("lower", r"Finished jaxpr to MLIR module conversion (.*) in ([0-9.e-]+) sec"),
+              ("compile", r"Finished XLA compilation of (.*) in ([0-9.e-]+) sec"))
+
     class Keep(logging.Handler):
         def emit(self, record):
-            m = re.match(r"Finished XLA compilation of (.*) in ([0-9.e-]+) sec", record.getMessage())
-            if m:
-                out.write(f"{m.group(2)}\t{m.group(1)}\t{_current[0]}\n")
-                out.flush()
+            message = record.getMessage()
+            if message.startswith("Persistent compilation cache hit"):
+                out.write(f"0\thit\t{message.split(chr(39))[1]}\t{_current[0]}\n")
+                return
+            for phase, pattern in phases:
+                m = re.match(pattern, message)
+                if m:
+                    out.write(f"{m.group(2)}\t{phase}\t{m.group(1)}\t{_current[0]}\n")
+                    out.flush()
+                    return
 
-    logging.getLogger("jax._src.dispatch").addHandler(Keep(level=logging.WARNING))
+    keep = Keep(level=logging.WARNING)  # jax_log_compiles logs all of these at WARNING
+    for name in ("jax._src.dispatch", "jax._src.compiler"):
+        logging.getLogger(name).addHandler(keep)
 
 
 def pytest_runtest_setup(item):
@@ -54,19 +69,39 @@ def main():
     p.add_argument("--out", default="benchmarks/results")
     p.add_argument("--top", type=int, default=25)
     a = p.parse_args()
-    rows = [line.rstrip("\n").split("\t") for f in glob.glob(a.log + ".*") for line in open(f)]
+    rows = []
+    for f in glob.glob(a.log + ".*"):
+        hit = False
+        for line in open(f):
+            row = line.rstrip("\n").split("\t")
+            if len(row) != 4:
+                continue
+            if row[1] == "compile" and hit:  # the hit is logged inside the compile step it ends
+                row[1] = "load"
+            hit = row[1] == "hit"
+            rows.append(row)
+    phase_seconds = collections.Counter()
+    phase_count = collections.Counter()
+    for seconds, phase, _, _ in rows:
+        phase_seconds[phase] += float(seconds)
+        phase_count[phase] += 1
+    compiles = [r for r in rows if r[1] == "compile"]
     by_program, by_test = collections.defaultdict(list), collections.defaultdict(list)
-    for seconds, program, test in rows:
+    for seconds, _, program, test in compiles:
         by_program[program].append(float(seconds))
         by_test[test].append(float(seconds))
-    total = sum(float(r[0]) for r in rows)
-    big = sum(float(r[0]) for r in rows if float(r[0]) >= 1.0)
+    total = phase_seconds["compile"]
+    big = sum(float(r[0]) for r in compiles if float(r[0]) >= 1.0)
     top = sorted(by_program.items(), key=lambda kv: -sum(kv[1]))[: a.top]
     tests = sorted(by_test.items(), key=lambda kv: -sum(kv[1]))[: a.top]
     intro = (f"`COMPILE_LOG=/tmp/clog PYTHONPATH=benchmarks python -m pytest -p compile_log` (fresh cache), then "
-             f"`python benchmarks/compile_log.py /tmp/clog` (the suite's two workers each pinned to a core by tests/conftest.py): {len(rows)} compilations, {total:.0f} s of worker "
-             f"time, {big:.0f} s of it in {sum(float(r[0]) >= 1.0 for r in rows)} compilations of 1 s or more. "
-             f"By program (top {a.top}), then by test.")
+             f"`python benchmarks/compile_log.py /tmp/clog` (the suite's two workers each pinned to a core by "
+             f"tests/conftest.py). Worker time by phase: tracing {phase_seconds['trace']:.0f} s "
+             f"({phase_count['trace']} top-level traces), lowering {phase_seconds['lower']:.0f} s "
+             f"({phase_count['lower']}), XLA compilation {total:.0f} s ({phase_count['compile']}), loading from "
+             f"the persistent cache {phase_seconds['load']:.0f} s ({phase_count['load']}); {big:.0f} s in "
+             f"{sum(float(r[0]) >= 1.0 for r in compiles)} compilations of 1 s or more. "
+             f"Compilations by program (top {a.top}), then by test.")
     table = [(name, len(s), round(sum(s), 1), round(sum(s) / len(s), 2)) for name, s in top]
     table += [("**by test**", "", "", "")] + [(t, len(s), round(sum(s), 1), round(sum(s) / len(s), 2)) for t, s in tests]
     print(report(a.out, "suite_compiles", "XLA compilation in the test suite", intro,
