@@ -164,7 +164,7 @@ def diffusion_terms(result, dcoef) -> tuple[Library, jax.Array]:
     `dcoef (..., d, Kd)` uses (a constant-only diffusion stays additive noise, for ShARK),
     and those coefficients."""
     dcoef = np.asarray(dcoef)
-    used = np.any(dcoef != 0, axis=tuple(range(dcoef.ndim - 1)))
+    used = _used_columns(dcoef)
     dlib = parse_library(result.preprocessing["diffusion_library"], result.nominal.m, 0).subset(used)
     return dlib, jnp.asarray(dcoef[..., used])
 
@@ -176,6 +176,12 @@ def _one(twins: UpdatedTwin, coef, dcoef) -> UpdatedTwin:
     return eqx.tree_at(lambda t: (t.coefficients, t.diffusion_coefficients), twins, (coef, dcoef))
 
 
+def _used_columns(coef) -> np.ndarray:
+    """`(K,)` True where some row of `coef (..., K)` is non-zero."""
+    coef = np.asarray(coef)
+    return np.any(coef.reshape(-1, coef.shape[-1]) != 0, axis=0)
+
+
 def used_terms(twins: UpdatedTwin) -> UpdatedTwin:
     """`twins` with the drift library cut to the terms some draw uses (the same rate: the
     others are zero in every draw). The solver then evaluates a handful of terms at each
@@ -184,7 +190,7 @@ def used_terms(twins: UpdatedTwin) -> UpdatedTwin:
         coef = np.asarray(twins.coefficients)
     except jax.errors.TracerArrayConversionError:
         return twins
-    used = np.any(coef.reshape(-1, coef.shape[-1]) != 0, axis=0)
+    used = _used_columns(coef)
     if used.all():
         return twins
     return dataclasses.replace(twins, library=twins.library.subset(used), coefficients=jnp.asarray(coef[..., used]))
@@ -202,8 +208,7 @@ def is_nonsmooth(twins: UpdatedTwin) -> bool:
         coef = np.asarray(twins.coefficients)
     except jax.errors.TracerArrayConversionError:
         return True
-    used = np.any(coef.reshape(-1, coef.shape[-1]) != 0, axis=0)
-    return bool(np.any(used & rough))
+    return bool(np.any(_used_columns(coef) & rough))
 
 
 def fixed_substeps(nominal: LinearSecondOrder, t) -> int:
