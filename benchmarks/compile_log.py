@@ -8,8 +8,10 @@ As a pytest plugin (``-p compile_log``), each worker appends ``seconds, phase, p
 test`` to ``$COMPILE_LOG.<worker>`` for every top-level trace (``trace``), lowering to MLIR
 (``lower``) and XLA compilation (``compile``) that JAX logs (``jax_log_compiles``), and a
 ``hit`` row for every program found in the persistent cache (the ``compile`` row that
-follows it is then its load time, summed apart). Run as a script, it sums the logs by phase, by program and by test
-into ``suite_compiles-<host>.md``. Subprocesses (the command-line tests, the notebooks'
+follows it is then its load time, summed apart); each row ends with the call site, the
+innermost frame of the package (outside ``dtwin_jax/_compile``), the tests or the
+benchmarks. Run as a script, it sums the logs by phase, by program, by call site and by
+test into ``suite_compiles-<host>.md``. Subprocesses (the command-line tests, the notebooks'
 kernels) are not seen.
 """
 
@@ -38,18 +40,32 @@ def pytest_configure(config):
         def emit(self, record):
             message = record.getMessage()
             if message.startswith("Persistent compilation cache hit"):
-                out.write(f"0\thit\t{message.split(chr(39))[1]}\t{_current[0]}\n")
+                out.write(f"0\thit\t{message.split(chr(39))[1]}\t{_current[0]}\t{_call_site()}\n")
                 return
             for phase, pattern in phases:
                 m = re.match(pattern, message)
                 if m:
-                    out.write(f"{m.group(2)}\t{phase}\t{m.group(1)}\t{_current[0]}\n")
+                    out.write(f"{m.group(2)}\t{phase}\t{m.group(1)}\t{_current[0]}\t{_call_site()}\n")
                     out.flush()
                     return
 
     keep = Keep(level=logging.WARNING)  # jax_log_compiles logs all of these at WARNING
     for name in ("jax._src.dispatch", "jax._src.compiler"):
         logging.getLogger(name).addHandler(keep)
+
+
+def _call_site() -> str:
+    """The innermost frame of the package (not its ``_compile`` wrappers), the tests or the
+    benchmarks: ``path:line``. Logging handlers run in the thread that logs, so the stack
+    is the compiling call's."""
+    import traceback
+
+    for frame in reversed(traceback.extract_stack()):
+        path = frame.filename.replace(os.sep, "/")
+        for root in ("/dtwin_jax/", "/tests/", "/benchmarks/"):
+            if root in path and "/_compile/" not in path and not path.endswith("compile_log.py"):
+                return path[path.rindex(root) + 1:] + f":{frame.lineno}"
+    return "?"
 
 
 def pytest_runtest_setup(item):
@@ -74,7 +90,9 @@ def main():
         hit = False
         for line in open(f):
             row = line.rstrip("\n").split("\t")
-            if len(row) != 4:
+            if len(row) == 4:  # a log from before call sites
+                row.append("?")
+            if len(row) != 5:
                 continue
             if row[1] == "compile" and hit:  # the hit is logged inside the compile step it ends
                 row[1] = "load"
@@ -82,18 +100,20 @@ def main():
             rows.append(row)
     phase_seconds = collections.Counter()
     phase_count = collections.Counter()
-    for seconds, phase, _, _ in rows:
+    for seconds, phase, *_ in rows:
         phase_seconds[phase] += float(seconds)
         phase_count[phase] += 1
     compiles = [r for r in rows if r[1] == "compile"]
-    by_program, by_test = collections.defaultdict(list), collections.defaultdict(list)
-    for seconds, _, program, test in compiles:
+    by_program, by_test, by_site = (collections.defaultdict(list) for _ in range(3))
+    for seconds, _, program, test, site in compiles:
         by_program[program].append(float(seconds))
         by_test[test].append(float(seconds))
+        by_site[f"{program} at {site}"].append(float(seconds))
     total = phase_seconds["compile"]
     big = sum(float(r[0]) for r in compiles if float(r[0]) >= 1.0)
     top = sorted(by_program.items(), key=lambda kv: -sum(kv[1]))[: a.top]
     tests = sorted(by_test.items(), key=lambda kv: -sum(kv[1]))[: a.top]
+    sites = sorted(by_site.items(), key=lambda kv: -sum(kv[1]))[: a.top]
     intro = (f"`COMPILE_LOG=/tmp/clog PYTHONPATH=benchmarks python -m pytest -p compile_log` (fresh cache), then "
              f"`python benchmarks/compile_log.py /tmp/clog` (the suite's two workers each pinned to a core by "
              f"tests/conftest.py). Worker time by phase: tracing {phase_seconds['trace']:.0f} s "
@@ -101,9 +121,10 @@ def main():
              f"({phase_count['lower']}), XLA compilation {total:.0f} s ({phase_count['compile']}), loading from "
              f"the persistent cache {phase_seconds['load']:.0f} s ({phase_count['load']}); {big:.0f} s in "
              f"{sum(float(r[0]) >= 1.0 for r in compiles)} compilations of 1 s or more. "
-             f"Compilations by program (top {a.top}), then by test.")
+             f"Compilations by program (top {a.top}), by program and call site, then by test.")
     table = [(name, len(s), round(sum(s), 1), round(sum(s) / len(s), 2)) for name, s in top]
-    table += [("**by test**", "", "", "")] + [(t, len(s), round(sum(s), 1), round(sum(s) / len(s), 2)) for t, s in tests]
+    for title, group in (("**by call site**", sites), ("**by test**", tests)):
+        table += [(title, "", "", "")] + [(t, len(s), round(sum(s), 1), round(sum(s) / len(s), 2)) for t, s in group]
     print(report(a.out, "suite_compiles", "XLA compilation in the test suite", intro,
                  ["program / test", "compilations", "seconds", "mean (s)"], table))
 
