@@ -209,6 +209,36 @@ def test_update_runs_the_two_drift_passes_as_output_only_drift_stats_does():
     np.testing.assert_allclose(np.asarray(split_margin), np.asarray(margin), rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize("name", ["example2", "example3"])
+def test_derivatives_along_the_drift_equal_forward_mode_through_the_drift(name):
+    """The regressors' first and second time derivatives along the drift `A x + S coef L(x)`,
+    from the library's first derivatives and one second-order pass (`_along_flow`), equal
+    forward mode differentiating the drift inside the pass (`J_L F`, `D^2 L[F, F] + J_L J_F F`):
+    every family of the examples' libraries, smoothed columns, random sparse coefficients."""
+    ex = systems.EXAMPLES[name]().for_output_only()
+    nominal = ex.system.nominal
+    lib = parse_library(ex.library_output_only, nominal.m, 0)
+    rng = np.random.default_rng(3)
+    q = len(nominal.regressed_index)
+    coef = jnp.asarray(np.where(rng.random((q, lib.K)) < 0.05, rng.normal(size=(q, lib.K)), 0.0))
+    smoothing = jnp.asarray(rng.random(nominal.m) * 1e-3)
+    x = jnp.asarray(rng.normal(size=(50, nominal.m)) * 0.3)
+    f = lambda z: lib.eval_single(z, None, smoothing)
+    reg = jnp.asarray(nominal.regressed_index)
+    zero_u = jnp.zeros(nominal.n)
+    drift = lambda z: nominal.rate(z, zero_u).at[reg].add(coef @ f(z))
+
+    def direct(z):
+        first = lambda y: jax.jvp(f, (y,), (drift(y),))[1]
+        return jax.jvp(first, (z,), (drift(z),))
+
+    want = jax.vmap(direct)(x)
+    d1, _ = kramers_moyal._derivatives(lib, x, smoothing)
+    got = kramers_moyal._along_flow(nominal, f, x, lib(x, None, smoothing), d1, coef)
+    for g, w in zip(got, want):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-11, atol=1e-11 * float(jnp.abs(w).max()))
+
+
 def test_noise_correction_margin_flags_noise_beyond_the_library():
     """Example 1, 100 records: the corrected Gram stays (nearly) definite at 5% noise and
     loses definiteness at 35% (where the sweep selects 15-28 spurious terms)."""

@@ -65,12 +65,7 @@ def drift_pass(nominal: LinearSecondOrder, lib: Library, x, dt, noise_var, coef,
     ``rows`` samples with the regressors moved along the nominal model plus ``coef (q, K)``
     (the library smoothed by ``smoothing (m,)``). Returns ``(stats, margin (q,))``, the
     Gram matrices' eigenvalues floored (:func:`_nearest_pd`)."""
-    regressed = jnp.asarray(nominal.regressed_index)
-
-    def perturbation(z):
-        return jnp.zeros(z.shape[-1], z.dtype).at[regressed].set(coef @ lib.eval_single(z, None, smoothing))
-
-    st = kramers_moyal.drift_statistics(nominal, lib, x, dt, noise_var, perturbation, smoothing=smoothing, rows=rows)
+    st = kramers_moyal.drift_statistics(nominal, lib, x, dt, noise_var, coef, smoothing=smoothing, rows=rows)
     return st._replace(gram=_nearest_pd(st.gram)), correction_margin(st.gram)
 
 
