@@ -160,16 +160,14 @@ def _along_flow(nominal: LinearSecondOrder, f, x, L, d1, coef):
     `F(x) = A x + S coef L(x)` at `x (P, m)`: `J_L F` and `D^2 L[F, F] + J_L J_F F`, each
     `(P, K)`, from the library's values `L (P, K)` and first derivatives `d1 (m, P, K)`
     (:func:`_derivatives`), `coef (r, K)` the drift perturbation's coefficients, `f` the
-    library at one sample. `J_F F = A F + S coef J_L F` needs no derivative of the drift;
-    only `D^2 L[F, F]` takes a second-order forward pass, its tangent held fixed (the drift
-    differentiated inside the pass cost 1.1 s against 0.07 s per 20000 samples of example
-    2's 256 terms)."""
+    library at one sample. `J_F F = A F + S coef J_L F` needs no derivative of the drift, so
+    only `D^2 L[F, F]` takes a second-order forward pass, its tangent held fixed
+    (differentiating the drift inside it evaluated the whole library twice more)."""
     reg = jnp.asarray(nominal.regressed_index)
     zero_u = jnp.zeros(nominal.n, x.dtype)
-    linear = jax.vmap(lambda z: nominal.rate(z, zero_u) - nominal.rate(jnp.zeros_like(z), zero_u))  # A z
     F = jax.vmap(lambda z: nominal.rate(z, zero_u))(x).at[:, reg].add(L @ coef.T)
     first = jnp.einsum("jpk,pj->pk", d1, F)
-    JF = linear(F).at[:, reg].add(first @ coef.T)
+    JF = (F @ state_matrix(nominal).T).at[:, reg].add(first @ coef.T)
     curvature = jax.vmap(lambda z, v: jax.jvp(lambda y: jax.jvp(f, (y,), (v,))[1], (z,), (v,))[1])(x, F)
     return first, curvature + jnp.einsum("jpk,pj->pk", d1, JF)
 
@@ -190,9 +188,10 @@ def drift_statistics(
 
     `x (R, N, m)` measured states, `noise_var (m,)` their white-noise variances,
     `coef (r, K)` the current estimate of the drift perturbation `S h`, the coefficients of
-    `lib`'s terms (smoothed by `smoothing`) in the regressed rows (None: zero). The library at sample `k` is regressed on the target of the step
-    `k+1 -> k+2`, which holds no noise of sample `k`; the shift and the drift's change over
-    the step are taken into the regressors, `L + 3/2 dt dL/dt + 7/6 dt^2 d^2L/dt^2`, the
+    `lib`'s terms (smoothed by `smoothing`) in the regressed rows (None: zero). The library
+    at sample `k` is regressed on the target of the step `k+1 -> k+2`, which holds no noise
+    of sample `k`; the shift and the drift's change over the step are taken into the
+    regressors, `L + 3/2 dt dL/dt + 7/6 dt^2 d^2L/dt^2`, the
     time derivatives taken along the model's drift `A x + S h(x)` at `x_k`. A derivative
     estimated from the measured path instead (a Savitzky-Golay filter) sees a Brownian
     velocity's roughness, which for a velocity term such as `x2**3` acts as noise in the
