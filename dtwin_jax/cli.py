@@ -1,5 +1,5 @@
-"""Command line (formats.md): ``dtwin-jax discover``, ``predict`` and ``update`` (a saved twin),
-``demo`` and ``sweep``."""
+"""Command line (formats.md): ``dtwin-jax discover``, ``predict``, ``update`` and ``monitor`` (a
+saved twin), ``demo`` and ``sweep``."""
 
 from __future__ import annotations
 
@@ -64,9 +64,9 @@ def _smoothing(text: str):
     return _positive_int(text)
 
 
-def _add_sampler_args(p: argparse.ArgumentParser, draws: int, burn_in: int) -> None:
+def _add_sampler_args(p: argparse.ArgumentParser, draws: int, burn_in: int, chains: int = 4) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--chains", type=_positive_int, default=4, help="Gibbs chains (default 4)")
+    p.add_argument("--chains", type=_positive_int, default=chains, help=f"Gibbs chains (default {chains})")
     p.add_argument("--draws", type=_positive_int, default=draws, help=f"kept draws per chain (default {draws})")
     p.add_argument("--burn-in", type=_nonneg_int, default=burn_in, help=f"discarded sweeps per chain (default {burn_in})")
     p.add_argument("--pip-threshold", type=float, default=0.5, help="select terms with PIP above this (default 0.5)")
@@ -124,6 +124,21 @@ def _parser() -> argparse.ArgumentParser:
     up.add_argument("--allow-repeat", action="store_true",
                     help="accept a window already in the twin's history (its data then count twice)")
     _add_sampler_args(up, draws=2000, burn_in=1000)
+
+    mo = sub.add_parser("monitor", help="follow a saved twin window after window: test each window against it, "
+                                        "then absorb it (formats.md)")
+    mo.add_argument("twin", metavar="TWIN_DIR", help="a saved twin (the baseline); it keeps the timeline")
+    mo.add_argument("windows", nargs="*", metavar="WINDOW", help="measurement files in time order, read as they come")
+    mo.add_argument("--record", default=None, metavar="DATA", help="one long record, cut into windows of --window s")
+    mo.add_argument("--window", type=float, default=None, metavar="SECONDS", help="the windows' length with --record")
+    mo.add_argument("--out", required=True, help="MONITOR.json: the timeline (rewritten after every window)")
+    mo.add_argument("--csv", default=None, help="also MONITOR.csv: one row per window")
+    mo.add_argument("--plot", default=None, help="also a PNG of the test, the PIPs and the coefficients over service time")
+    mo.add_argument("--false-alarm", type=float, default=1e-3,
+                    help="chance that a window that follows the twin raises an alarm (default 0.001)")
+    mo.add_argument("--forget", type=float, default=0.9,
+                    help="weight of the older windows' data at each update, in [0, 1] (default 0.9)")
+    _add_sampler_args(mo, draws=1000, burn_in=500, chains=2)
 
     demo = sub.add_parser("demo", help="simulate a paper example, update its twin, print and save results")
     demo.add_argument("--example", choices=("example1", "example2", "example3"), default="example1")
@@ -248,31 +263,13 @@ def _check_early(args, sizes, library) -> None:
 
 
 def _update(args, mode, nominal, data, *, library, diffusion_library=None, previous=None, forget=1.0):
-    common = dict(pip_threshold=args.pip_threshold, settings=_settings(args), seed=args.seed,
-                  progress=not args.quiet, previous=previous, forget=forget,
-                  allow_repeat=getattr(args, "allow_repeat", False))
-    if mode == "output-only":
-        if getattr(args, "refine", False):
-            raise DataError("--refine needs input-output data (output error simulates the measured input)")
-        from dtwin_jax.output_only.update import update_output_only
+    from dtwin_jax.update.from_data import update_from_data
 
-        if "x" not in data:  # accelerometers alone: ambient vibration
-            return update_output_only(nominal, data["t"], None, xdot=data["xdot"], xdot_names=data.get("xdot_names"),
-                                      library=library, diffusion_library=diffusion_library, **common)
-        if data.get("x_names") not in (None, list(nominal.state_names)) or "xdot" in data:
-            raise DataError("output-only mode needs every state measured (no 'x_names' subset, no 'xdot')")
-        return update_output_only(nominal, data["t"], data["x"], library=library,
-                                  diffusion_library=diffusion_library, **common)
-    if "u" not in data:
-        raise DataError(f"input-output mode needs key 'u' in '{args.data}'")
-    from dtwin_jax.input_output.update import update_input_output
-
-    return update_input_output(nominal, data["t"], data.get("x"), data["u"], data.get("xdot"),
-                               x_names=data.get("x_names"), xdot_names=data.get("xdot_names"),
-                               interpolation=data.get("u_interpolation", "auto"),
-                               library=library, smoothing=args.smoothing, refine=getattr(args, "refine", False),
-                               reference=data.get("reference"),
-                               **common)
+    return update_from_data(mode, nominal, data, library=library, diffusion_library=diffusion_library,
+                            smoothing=args.smoothing, refine=getattr(args, "refine", False), source=args.data,
+                            pip_threshold=args.pip_threshold, settings=_settings(args), seed=args.seed,
+                            progress=not args.quiet, previous=previous, forget=forget,
+                            allow_repeat=getattr(args, "allow_repeat", False))
 
 
 def _report(args, result) -> None:
@@ -353,6 +350,88 @@ def _update_saved(args) -> int:
             _write_outputs(args, result)
             save_twin(result, target)
     print(f"update {len(result.history)} of the twin saved to {target}/")
+    return 0
+
+
+def _monitor_windows(args):
+    """``(source, data, t_start)`` of each window, read when its turn comes."""
+    from dtwin_jax.io import load_measurements
+
+    if args.record is None:
+        for path in args.windows:
+            yield path, load_measurements(path), None
+        return
+    data = load_measurements(args.record)
+    t = data["t"]
+    if t.ndim != 1 or t.size < 2:
+        raise DataError(f"'{args.record}': t must hold at least two sample times")
+    n = int(round(args.window / (t[1] - t[0])))
+    if not 3 <= n <= t.size:
+        raise DataError(f"--window {args.window:g} s is {n} samples of '{args.record}', which holds {t.size}: "
+                        "give at least 3 and at most the record")
+    for start in range(0, t.size - n + 1, n):
+        sl = slice(start, start + n)
+        window = {k: v[sl] if k == "t" or (k == "reference" and v.ndim == 1) else v[..., sl, :]
+                  if k in ("x", "u", "xdot", "reference") else v for k, v in data.items()}
+        yield f"{Path(args.record).name}[{start}:{start + n}]", window, float(t[start])
+
+
+def _check_monitor_args(args) -> None:
+    if (args.record is None) == (not args.windows):
+        raise DataError("give the windows as files, or one --record with --window (not both)")
+    if (args.window is None) != (args.record is None):
+        raise DataError("--window goes with --record (the length of the windows cut from it)")
+    if args.window is not None and not (args.window > 0 and args.window < float("inf")):
+        raise DataError(f"--window must be a positive number of seconds, got {args.window:g}")
+    if not 0.0 < args.false_alarm < 1.0:
+        raise DataError(f"--false-alarm must be in (0, 1), got {args.false_alarm:g}")
+    if not 0.0 <= args.forget <= 1.0:
+        raise DataError(f"--forget must be in [0, 1], got {args.forget:g}")
+    _check_threshold(args.pip_threshold)
+    for out in (args.out, args.csv, args.plot):
+        if out:
+            _check_writable(out)
+    if not (Path(args.twin) / "twin.json").is_file():
+        raise DataError(f"'{args.twin}' is not a saved twin (no twin.json): save one with discover --save-twin")
+
+
+def _monitor(args) -> int:
+    """Follow a saved twin window after window (formats.md): each window tested against the
+    twin as it stood, then absorbed; the twin (which keeps the timeline) and the timeline
+    files are rewritten after every window, so a killed run resumes where it stopped."""
+    _check_monitor_args(args)
+    library, sizes = _check_twin_early(args.twin)
+    _check_early(args, sizes, library)
+    from dtwin_jax.io.store import load_twin, save_twin
+    from dtwin_jax.io.twin_folder import locked
+    from dtwin_jax.monitor import Monitor
+    from dtwin_jax.monitor.timeline import write_timeline
+
+    settings = {"false_alarm": args.false_alarm, "forget": args.forget}
+    with locked(args.twin, on_wait=_waiting(args.twin)):
+        mon = Monitor(load_twin(args.twin), settings=_settings(args), seed=args.seed, smoothing=args.smoothing,
+                      **settings)
+        for source, data, t_start in _monitor_windows(args):
+            if mon.absorbed(data):
+                print(f"{source}: already in the timeline; skipped")
+                continue
+            entry = mon.step(data, source=source, t_start=t_start)
+            reasons = [f"{k.split('_')[0]} {', '.join(entry[k])}" for k in ("new_terms", "dropped_terms",
+                                                                              "changed_terms") if entry[k]]
+            state = "ALARM" + (f" ({'; '.join(reasons)})" if reasons else "") if entry["alarm"] else "ok"
+            print(f"window {entry['index']} ({source}): {state}, p = {entry['p_value']:.3g}, {entry['seconds']:.2f} s")
+            with _uninterrupted():
+                save_twin(mon.twin, args.twin)
+                write_timeline(args.out, mon.timeline, csv_path=args.csv, **settings)
+    timeline = mon.timeline
+    with _uninterrupted():
+        write_timeline(args.out, timeline, csv_path=args.csv, **settings)
+        if args.plot:
+            from dtwin_jax.plots import plot_monitor
+
+            plot_monitor(timeline, args.plot, false_alarm=args.false_alarm)
+    first = next((w["index"] for w in timeline if w["alarm"]), None)
+    print(f"{len(timeline)} windows in the timeline; first alarm: {'none' if first is None else f'window {first}'}")
     return 0
 
 
@@ -606,7 +685,7 @@ def main(argv=None) -> int:
         if getattr(args, "out_dir", None):
             _check_writable(args.out_dir, folder=True)
         commands = {"sweep": _sweep, "discover": _discover, "demo": _demo, "predict": _predict,
-                    "update": _update_saved}
+                    "update": _update_saved, "monitor": _monitor}
         return commands[args.command](args)
     except DataError as e:
         return _error(str(e))

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plot_pip", "plot_noise_sweep", "plot_prediction", "plot_degradation"]
+__all__ = ["plot_pip", "plot_noise_sweep", "plot_prediction", "plot_degradation", "plot_monitor"]
 
 
 def _figure(size):
@@ -141,3 +141,69 @@ def plot_degradation(forecast, truth=None, path=None):
     ax_p.legend(fontsize=8, loc="lower left", bbox_to_anchor=(0.0, 1.02), ncol=2, frameon=False)
     fig.tight_layout()
     return _save(fig, path)
+
+
+# At most this many coefficient panels on a monitor plot (the terms selected longest).
+MONITOR_PANELS = 6
+
+
+def plot_monitor(timeline, path=None, *, false_alarm=None):
+    """A monitor's timeline (:class:`~dtwin_jax.monitor.Monitor`): each window's p-value
+    against the false-alarm rate, the PIPs of every term ever selected, and the coefficients
+    of the terms selected longest, with their 95% interval, over service time; alarms are
+    red vertical lines. Written to ``path`` (PNG) when given."""
+    from dtwin_jax.monitor.timeline import ever_selected
+
+    ts = np.array([w["t_start"] for w in timeline], dtype=float)
+    if ts.size < 2 or np.any(np.diff(ts) <= 0):  # windows from files that each start at 0
+        ts, xlabel = np.array([w["index"] for w in timeline], dtype=float), "window"
+    else:
+        xlabel = "service time (s)"
+    terms = ever_selected(timeline)
+    rows = {term: _monitor_rows(timeline, term) for term in terms}
+    longest = sorted(terms, key=lambda term: -np.sum(np.isfinite(rows[term][1])))[:MONITOR_PANELS]
+    fig = _figure((10, 2.2 * (2 + len(longest))))
+    axes = fig.subplots(2 + len(longest), 1, squeeze=False, sharex=True)[:, 0]
+    p = np.array([w["p_value"] for w in timeline], dtype=float)
+    axes[0].semilogy(ts, np.maximum(p, 1e-300), "o-", color="k", ms=3, lw=0.8, label="window p-value")
+    if false_alarm is not None:
+        axes[0].axhline(false_alarm, color="tab:red", ls="--", lw=1, label=f"false-alarm rate {false_alarm:g}")
+    axes[0].set_ylabel("p-value (-)")
+    axes[0].legend(loc="lower left", bbox_to_anchor=(0.0, 1.02), fontsize=8, ncol=3, frameon=False)
+    for term in terms:
+        axes[1].plot(ts, rows[term][0], lw=1, label=_term_label(term))
+    axes[1].set_ylim(-0.02, 1.02)
+    axes[1].set_ylabel("PIP (-)")
+    if terms:
+        axes[1].legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=7, frameon=False)
+    for ax, term in zip(axes[2:], longest):
+        _, mean, lower, upper = rows[term]
+        ax.fill_between(ts, lower, upper, color="tab:blue", alpha=0.3, lw=0, label="95% interval")
+        ax.plot(ts, mean, "o-", color="tab:blue", ms=2.5, lw=0.8, label="posterior mean")
+        ax.set_ylabel(f"{_term_label(term)}\n(acceleration units)", fontsize=8)
+    for ax in axes:
+        for t_alarm in ts[[bool(w["alarm"]) for w in timeline]]:
+            ax.axvline(t_alarm, color="tab:red", lw=0.8, alpha=0.7)
+    axes[-1].set_xlabel(xlabel)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def _term_label(term) -> str:
+    state, kind, expr = term
+    return f"{state}:{expr}" if kind == "drift" else f"{state} {kind}:{expr}"
+
+
+def _monitor_rows(timeline, term):
+    """``(pip, mean, lower, upper)`` of ``term`` over the windows (NaN where not selected)."""
+    state, kind, expr = term
+    out = np.full((4, len(timeline)), np.nan)
+    for i, w in enumerate(timeline):
+        eq = next((e for e in w["equations"] if (e["state"], e["kind"]) == (state, kind)), None)
+        if eq is None:
+            continue
+        out[0, i] = eq["pip"].get(expr, np.nan)
+        hit = next((t for t in eq["terms"] if t["expr"] == expr), None)
+        if hit:
+            out[1:, i] = hit["mean"], *hit["hdi_95"]
+    return out

@@ -1,0 +1,20 @@
+"""Monitoring structures in service: each window tested against the twin as it stood
+before it, then absorbed (formats.md, "Monitoring a structure in service")."""
+
+from dtwin_jax.monitor.change import (
+           Belief,
+           ChangeTest,
+           belief,
+           window_statistics,
+           window_test,
+)
+from dtwin_jax.monitor.service import (
+           MONITOR_SETTINGS,
+           Monitor,
+           alarm_reasons,
+           data_fingerprint,
+           first_alarm,
+)
+
+__all__ = ["Belief", "ChangeTest", "belief", "window_statistics", "window_test", "MONITOR_SETTINGS", "Monitor",
+           "alarm_reasons", "data_fingerprint", "first_alarm"]
