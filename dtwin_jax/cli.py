@@ -415,7 +415,10 @@ def _monitor(args) -> int:
             if mon.absorbed(data):
                 print(f"{source}: already in the timeline; skipped")
                 continue
-            entry = mon.step(data, source=source, t_start=t_start)
+            try:
+                entry = mon.step(data, source=source, t_start=t_start)
+            except DataError as e:  # which window: the earlier ones are absorbed and written
+                raise DataError(f"window '{source}': {e}") from None
             reasons = [f"{k.split('_')[0]} {', '.join(entry[k])}" for k in ("new_terms", "dropped_terms",
                                                                               "changed_terms") if entry[k]]
             state = "ALARM" + (f" ({'; '.join(reasons)})" if reasons else "") if entry["alarm"] else "ok"

@@ -1,0 +1,119 @@
+"""The monitor on simulated service lives of zoo members (issue 28's detection and false-alarm
+targets): a zoo term that appears at window k, a 5% stiffness drop at window k, or nothing
+(stationary lives). Each life's window 0 is the baseline update; windows 1.. are monitored
+(`dtwin_jax.monitor.Monitor`, default settings), 5% noise on every signal.
+
+    taskset -c 0 python benchmarks/monitor_lives.py --kind term --lives 50
+    taskset -c 0 python benchmarks/monitor_lives.py --kind stiffness --lives 50
+    taskset -c 0 python benchmarks/monitor_lives.py --kind stationary --lives 50 --windows 21
+
+Prints one line per life and the summary; `--out` appends the summary (markdown) to a file.
+"""
+
+import argparse
+import json
+import time
+
+import jax
+import numpy as np
+
+import dtwin_jax  # noqa: F401  (float64)
+from dtwin_jax.models import zoo
+from dtwin_jax.models.lives import simulate_life
+from dtwin_jax.monitor import MONITOR_SETTINGS, Monitor
+from dtwin_jax.update.from_data import update_from_data
+
+
+def _schedules(kind, W, k):
+    scale, stiffness = np.ones(W), np.ones(W)
+    if kind == "term":
+        scale[:k] = 0.0
+    elif kind == "stiffness":
+        stiffness[k:] = 0.95
+    return scale, stiffness
+
+
+def _layout(window, layout):
+    if layout == "accelerations":
+        return window
+    if layout == "states":
+        return {k: v for k, v in window.items() if k != "xdot"}
+    if layout == "accelerometers":
+        return {k: v for k, v in window.items() if k != "x"}
+    raise ValueError(layout)
+
+
+def life(seed, kind, W, k, layout, framework, false_alarm, forget):
+    member = zoo.draw_member(seed)
+    ex = member.example
+    scale, stiffness = _schedules(kind, W, k)
+    output_only = framework == "output-only"
+    windows = simulate_life(ex, jax.random.key(seed), scale=scale, stiffness=stiffness, level=0.05,
+                            output_only=output_only)
+    mode = "output-only" if output_only else "input-output"
+    library = ex.library_output_only if output_only else ex.library
+    data = [_layout(w, layout) for w in windows] if not output_only else [
+        {"t": w["t"], "x": w["x"]} if layout == "states" else {"t": w["t"], "xdot": w["xdot"],
+                                                               "xdot_names": w["xdot_names"]} for w in windows]
+    base = update_from_data(mode, ex.system.nominal, data[0], library=library, settings=MONITOR_SETTINGS)
+    mon = Monitor(base, false_alarm=false_alarm, forget=forget)
+    t0 = time.perf_counter()
+    entries = [mon.step(d, source=f"w{i}") for i, d in enumerate(data[1:], start=1)]
+    alarms = [i for i, e in enumerate(entries, start=1) if e["alarm"]]
+    before = [i for i in alarms if kind == "stationary" or i < k]
+    after = [i for i in alarms if kind != "stationary" and i >= k]
+    return {"seed": seed, "family": member.family, "alarms": alarms, "false_alarms": len(before),
+            "tested_before": (W - 1) if kind == "stationary" else k - 1,
+            "delay": (after[0] - k) if after else None, "seconds": time.perf_counter() - t0,
+            "window_seconds": sorted(e["seconds"] for e in entries)[len(entries) // 2],
+            "reasons": entries[after[0] - 1]["new_terms"] + entries[after[0] - 1]["changed_terms"] if after else [],
+            "p_min": min(e["p_value"] for e in entries)}
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--kind", choices=("term", "stiffness", "stationary"), default="term")
+    ap.add_argument("--lives", type=int, default=50)
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--windows", type=int, default=11)
+    ap.add_argument("--change-at", type=int, default=5)
+    ap.add_argument("--within", type=int, default=None, help="detection counts within this many windows "
+                    "(default 3 for a term, 5 for the stiffness)")
+    ap.add_argument("--layout", default="accelerations", choices=("accelerations", "states", "accelerometers"))
+    ap.add_argument("--framework", default="input-output", choices=("input-output", "output-only"))
+    ap.add_argument("--false-alarm", type=float, default=1e-3)
+    ap.add_argument("--forget", type=float, default=0.9)
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args()
+    within = a.within or (3 if a.kind == "term" else 5)
+    rows = []
+    for seed in range(a.first_seed, a.first_seed + a.lives):
+        r = life(seed, a.kind, a.windows, a.change_at, a.layout, a.framework, a.false_alarm, a.forget)
+        rows.append(r)
+        print(json.dumps(r), flush=True)
+    tested = sum(r["tested_before"] for r in rows)
+    false = sum(r["false_alarms"] for r in rows)
+    lines = [f"## {a.framework}, {a.layout}, {a.kind}: {a.lives} lives (seeds {a.first_seed}..), "
+             f"{a.windows} windows, change at {a.change_at}, false-alarm {a.false_alarm:g}, forget {a.forget:g}", ""]
+    if a.kind != "stationary":
+        found = [r for r in rows if r["delay"] is not None and r["delay"] < within]
+        lines.append(f"- detected within {within} windows: **{len(found)} / {len(rows)}** "
+                     f"(delays: {sorted(r['delay'] for r in rows if r['delay'] is not None)})")
+        missed = [f"{r['seed']} {r['family']}" for r in rows if r not in found]
+        lines.append(f"- missed: {', '.join(missed) or 'none'}")
+    lines.append(f"- false alarms: **{false} in {tested} windows** that followed the twin")
+    lines.append(f"- median seconds per window (tested and absorbed): "
+                 f"{np.median([r['window_seconds'] for r in rows]):.3f}")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if a.out:
+        with open(a.out, "a") as f:
+            f.write(text + "\n")
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(rows, f)
+
+
+if __name__ == "__main__":
+    main()

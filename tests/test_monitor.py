@@ -1,0 +1,213 @@
+"""The monitor (formats.md, "Monitoring a structure in service"; issue 28): the window test's
+false-alarm rate, detection of a stiffness drop and of a new term in a simulated life, the
+timeline files, the command line's errors, and a resumed run equal to an uninterrupted one."""
+
+import json
+import shutil
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats
+
+import dtwin_jax  # noqa: F401  (float64)
+from dtwin_jax.cli import main
+from dtwin_jax.io import write_nominal
+from dtwin_jax.io.store import load_twin, save_twin
+from dtwin_jax.models import zoo
+from dtwin_jax.models.lives import simulate_life
+from dtwin_jax.monitor import MONITOR_SETTINGS, Belief, Monitor, window_test
+from dtwin_jax.monitor.timeline import timeline_csv
+from dtwin_jax.sampler import SuffStats
+from dtwin_jax.update.from_data import update_from_data
+
+FAST = ["--quiet"]
+
+
+def _synthetic(key, K=12, n0=400, n=300, windows=4000, shift=0.0):
+    """`windows` pairs of a twin fitted by least squares on `n0` rows (a flat prior: its
+    posterior is exact) and a window of `n` rows from the same linear model (`shift` added to
+    coefficient 0 in the window). Each pair draws its own data, so over the pairs the twin's
+    error is as random as its posterior says."""
+    k0, k1, k2 = jax.random.split(key, 3)
+    beta, sigma = jax.random.normal(k0, (K,)), 0.7
+    mix = jnp.eye(K) + 0.5 * jax.random.normal(k1, (K, K)) / np.sqrt(K)  # correlated columns
+
+    def rows(k, size, b):
+        ka, kb = jax.random.split(k)
+        X = jax.random.normal(ka, (size, K)) @ mix
+        return X, X @ b + sigma * jax.random.normal(kb, (size,))
+
+    def pair(k):
+        ka, kb = jax.random.split(k)
+        X0, y0 = rows(ka, n0, beta)
+        G0 = X0.T @ X0
+        prior = Belief(jnp.linalg.solve(G0, X0.T @ y0)[None], sigma**2 * jnp.linalg.inv(G0)[None],
+                       jnp.asarray([sigma**2]))
+        X, y = rows(kb, n, beta.at[0].add(shift))
+        return prior, SuffStats((X.T @ X)[None], (X.T @ y)[None], (y @ y)[None], jnp.asarray([float(n)]))
+
+    return jax.vmap(pair)(jax.random.split(k2, windows))
+
+
+def test_the_window_test_holds_its_false_alarm_rate_and_sees_a_small_shift():
+    priors, windows = _synthetic(jax.random.key(0))
+    test = jax.vmap(window_test)(priors, windows)
+    p = np.asarray(test.p_value[:, 0])
+    assert np.all(np.asarray(test.df) == 12)
+    # Uniform p-values: the chi-square is exact here (4000 windows).
+    assert stats.kstest(p, "uniform").statistic < 0.025
+    assert abs(np.mean(p < 0.01) - 0.01) < 0.005 and abs(np.mean(p < 0.1) - 0.1) < 0.015
+    one = window_test(*jax.tree.map(lambda a: a[7], (priors, windows)))
+    assert np.allclose(one.statistic, test.statistic[7], rtol=1e-12)
+    # A change: the power the noncentral chi-square predicts, at a false-alarm rate of 1e-3.
+    shift = 0.2
+    priors, shifted = _synthetic(jax.random.key(1), windows=400, shift=shift)
+    p_shift = np.asarray(jax.vmap(window_test)(priors, shifted).p_value[:, 0])
+    G = np.asarray(shifted.gram[:, 0])
+    V = np.asarray(priors.sigma2[:, 0, None, None]) * G + G @ np.asarray(priors.cov[:, 0]) @ G
+    Gd = G[:, :, 0] * shift  # the mean score G delta
+    ncp = np.einsum("ik,ik->i", Gd, np.linalg.solve(V, Gd[..., None])[..., 0])
+    predicted = np.mean(stats.ncx2.sf(stats.chi2.isf(1e-3, 12), 12, ncp))
+    assert 0.3 < predicted < 0.9 and abs(np.mean(p_shift < 1e-3) - predicted) < 0.06
+
+
+@pytest.fixture(scope="module")
+def life():
+    """Zoo member 4 (an SDOF with Coulomb friction, the friction absent at first): its
+    stiffness drops 5% at window 2, the friction appears at window 4; 5% noise on every
+    signal (force, displacement, velocity, acceleration)."""
+    ex = zoo.draw_member(4).example
+    assert zoo.draw_member(4).family == "coulomb"
+    scale = np.array([0, 0, 0, 0, 1, 1, 1.0])
+    stiffness = np.array([1, 1, 0.95, 0.95, 0.95, 0.95, 0.95])
+    windows = simulate_life(ex, jax.random.key(4), scale=scale, stiffness=stiffness, level=0.05)
+    base = update_from_data("input-output", ex.system.nominal, windows[0], library=ex.library, settings=MONITOR_SETTINGS)
+    return ex, windows, base
+
+
+def test_a_stiffness_drop_and_a_new_term_are_flagged_when_they_appear_and_named(life):
+    ex, windows, base = life
+    mon = Monitor(base)
+    entries = [mon.step(w, source=f"w{i}") for i, w in enumerate(windows[1:], start=1)]
+    assert [e["alarm"] for e in entries] == [False, True, False, True, False, False]
+    assert [e["index"] for e in entries] == list(range(6))
+    drop, friction = entries[1], entries[3]
+    k_over_m = float(ex.system.nominal.K[0, 0] / ex.system.nominal.M[0, 0])
+    assert drop["new_terms"] == ["x2:x1"] and drop["p_value"] < 1e-4
+    assert "x2:sign(x2)" in friction["new_terms"] and friction["p_value"] < 1e-10
+    # The restarted twin's stiffness change is the 5% drop (0.05 k/m), within its interval.
+    x1 = next(t for t in entries[2]["equations"][0]["terms"] if t["expr"] == "x1")
+    assert x1["hdi_95"][0] < 0.05 * k_over_m < x1["hdi_95"][1]
+    assert abs(x1["mean"] / (0.05 * k_over_m) - 1) < 0.2
+    assert all(e["p_value"] > 1e-3 for e in entries if not e["alarm"])
+    history = mon.twin.history
+    assert [h["monitor"]["restarted"] for h in history[1:]] == [False, True, False, True, False, False]
+    assert history[2]["prior"].startswith("spike-and-slab (restarted")
+    assert history[3]["prior"].startswith("posterior of update 3")
+    # One row per window; the terms ever selected as columns.
+    header, *rows = timeline_csv(mon.timeline).splitlines()
+    assert len(rows) == 6 and "pip[x2:x1]" in header and "mean[x2:sign(x2)]" in header
+    assert rows[1].split(",")[3] == "True" and rows[1].split(",")[7] == "x2:x1"
+
+
+@pytest.fixture
+def files(life, tmp_path):
+    ex, windows, base = life
+    write_nominal(tmp_path / "nominal.toml", ex.system.nominal)
+    for i, w in enumerate(windows):
+        np.savez(tmp_path / f"w{i}.npz", **w)
+    np.savez(tmp_path / "record.npz", **{k: np.concatenate([w[k] for w in windows]) for k in ("t", "x", "xdot", "u")})
+    save_twin(base, tmp_path / "twin")
+    return tmp_path
+
+
+def _without_clocks(timeline):
+    return [{k: v for k, v in w.items() if k != "seconds"} for w in timeline]
+
+
+def test_a_resumed_monitor_has_the_history_of_an_uninterrupted_one(files, monkeypatch, capsys):
+    tmp = files
+    shutil.copytree(tmp / "twin", tmp / "again")
+    windows = [str(tmp / f"w{i}.npz") for i in range(1, 5)]
+    assert main(["monitor", str(tmp / "twin"), *windows, "--out", str(tmp / "m.json"), "--csv",
+                 str(tmp / "m.csv"), "--plot", str(tmp / "m.png")] + FAST) == 0
+    full = json.loads((tmp / "m.json").read_text())
+    assert full["first_alarm"] == 1 and [w["alarm"] for w in full["windows"]] == [False, True, False, True]
+    assert (tmp / "m.png").stat().st_size > 10_000 and len((tmp / "m.csv").read_text().splitlines()) == 5
+    # Killed after the third window's twin was saved, before its timeline was written.
+    import dtwin_jax.monitor.timeline as timeline
+
+    calls = []
+
+    def dies(path, tl, **kw):
+        calls.append(len(tl))
+        if len(tl) == 3:
+            raise KeyboardInterrupt
+        return write(path, tl, **kw)
+
+    write = timeline.write_timeline
+    monkeypatch.setattr(timeline, "write_timeline", dies)
+    assert main(["monitor", str(tmp / "again"), *windows, "--out", str(tmp / "r.json")] + FAST) == 130
+    monkeypatch.setattr(timeline, "write_timeline", write)
+    assert len(json.loads((tmp / "r.json").read_text())["windows"]) == 2
+    assert len(load_twin(tmp / "again").history) == 4  # the baseline and three windows
+    capsys.readouterr()
+    assert main(["monitor", str(tmp / "again"), *windows, "--out", str(tmp / "r.json")] + FAST) == 0
+    out = capsys.readouterr().out
+    assert out.count("already in the timeline; skipped") == 3
+    resumed = json.loads((tmp / "r.json").read_text())
+    assert _without_clocks(resumed["windows"]) == _without_clocks(full["windows"])
+    a, b = load_twin(tmp / "twin"), load_twin(tmp / "again")
+    for ea, eb in zip(a.equations, b.equations):
+        assert np.array_equal(ea.theta, eb.theta) and np.array_equal(ea.gamma, eb.gamma)
+
+
+def test_windows_cut_from_a_record_are_the_files_windows(files):
+    tmp = files
+    shutil.copytree(tmp / "twin", tmp / "a")
+    shutil.copytree(tmp / "twin", tmp / "b")
+    assert main(["monitor", str(tmp / "a"), str(tmp / "w1.npz"), str(tmp / "w2.npz"), "--out", str(tmp / "a.json")]
+                + FAST) == 0
+    record = tmp / "record.npz"
+    data = dict(np.load(record))
+    np.savez(record, **{k: v[1000:3000] for k, v in data.items()})
+    assert main(["monitor", str(tmp / "b"), "--record", str(record), "--window", "1", "--out", str(tmp / "b.json")]
+                + FAST) == 0
+    a, b = (json.loads((tmp / f"{n}.json").read_text())["windows"] for n in "ab")
+    assert [w["source"] for w in b] == ["record.npz[0:1000]", "record.npz[1000:2000]"]
+    assert [w["t_start"] for w in b] == [1.0, 2.0]
+    assert [w["p_value"] for w in a] == pytest.approx([w["p_value"] for w in b], rel=1e-9)
+
+
+@pytest.mark.parametrize("case, message", [
+    ("both", "give the windows as files, or one --record with --window (not both)"),
+    ("no-window", "--window goes with --record"),
+    ("not-a-twin", "is not a saved twin (no twin.json)"),
+    ("false-alarm", "--false-alarm must be in (0, 1), got 2"),
+    ("short-window", "--window 0.001 s is 1 samples"),
+    ("nan", "bad.npz': 'x' contains NaN or infinite values"),
+])
+def test_monitor_errors_are_one_line_and_keep_what_was_done(files, case, message, capsys):
+    tmp = files
+    w = [str(tmp / "w1.npz")]
+    args = {"both": [str(tmp / "twin"), *w, "--record", str(tmp / "record.npz"), "--window", "1"],
+            "no-window": [str(tmp / "twin"), "--record", str(tmp / "record.npz")],
+            "not-a-twin": [str(tmp), *w],
+            "false-alarm": [str(tmp / "twin"), *w, "--false-alarm", "2"],
+            "short-window": [str(tmp / "twin"), "--record", str(tmp / "record.npz"), "--window", "0.001"]}
+    if case == "nan":
+        bad = dict(np.load(tmp / "w2.npz"))
+        bad["x"][10, 0] = np.nan
+        np.savez(tmp / "bad.npz", **bad)
+        args["nan"] = [str(tmp / "twin"), *w, str(tmp / "bad.npz")]
+    before = sorted(p.name for p in tmp.iterdir())
+    assert main(["monitor", *args[case], "--out", str(tmp / "m.json")] + FAST) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
+    if case == "nan":  # the first window was tested, absorbed and written; the bad one left nothing
+        assert [w["source"] for w in json.loads((tmp / "m.json").read_text())["windows"]] == w
+        assert len(load_twin(tmp / "twin").history) == 2
+    else:
+        assert sorted(p.name for p in tmp.iterdir()) == before
