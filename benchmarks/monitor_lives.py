@@ -43,9 +43,9 @@ def _layout(window, layout):
     raise ValueError(layout)
 
 
-def life(seed, kind, W, k, layout, framework, false_alarm, forget):
+def life(seed, kind, W, k, layout, framework, false_alarm, forget, seconds):
     member = zoo.draw_member(seed)
-    ex = member.example
+    ex = member.example._replace(duration=seconds)
     scale, stiffness = _schedules(kind, W, k)
     output_only = framework == "output-only"
     windows = simulate_life(ex, jax.random.key(seed), scale=scale, stiffness=stiffness, level=0.05,
@@ -81,6 +81,7 @@ def main():
                     "(default 3 for a term, 5 for the stiffness)")
     ap.add_argument("--layout", default="accelerations", choices=("accelerations", "states", "accelerometers"))
     ap.add_argument("--framework", default="input-output", choices=("input-output", "output-only"))
+    ap.add_argument("--seconds", type=float, default=1.0, help="each window's length (s)")
     ap.add_argument("--false-alarm", type=float, default=1e-3)
     ap.add_argument("--forget", type=float, default=0.9)
     ap.add_argument("--out", default=None)
@@ -89,13 +90,13 @@ def main():
     within = a.within or (3 if a.kind == "term" else 5)
     rows = []
     for seed in range(a.first_seed, a.first_seed + a.lives):
-        r = life(seed, a.kind, a.windows, a.change_at, a.layout, a.framework, a.false_alarm, a.forget)
+        r = life(seed, a.kind, a.windows, a.change_at, a.layout, a.framework, a.false_alarm, a.forget, a.seconds)
         rows.append(r)
         print(json.dumps(r), flush=True)
     tested = sum(r["tested_before"] for r in rows)
     false = sum(r["false_alarms"] for r in rows)
     lines = [f"## {a.framework}, {a.layout}, {a.kind}: {a.lives} lives (seeds {a.first_seed}..), "
-             f"{a.windows} windows, change at {a.change_at}, false-alarm {a.false_alarm:g}, forget {a.forget:g}", ""]
+             f"{a.windows} windows of {a.seconds:g} s, change at {a.change_at}, false-alarm {a.false_alarm:g}, forget {a.forget:g}", ""]
     if a.kind != "stationary":
         found = [r for r in rows if r["delay"] is not None and r["delay"] < within]
         lines.append(f"- detected within {within} windows: **{len(found)} / {len(rows)}** "

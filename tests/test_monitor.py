@@ -18,6 +18,7 @@ from dtwin_jax.io.store import load_twin, save_twin
 from dtwin_jax.models import zoo
 from dtwin_jax.models.lives import simulate_life
 from dtwin_jax.monitor import MONITOR_SETTINGS, Belief, Monitor, window_test
+from dtwin_jax.monitor.service import combined_p_value, fisher_combination
 from dtwin_jax.monitor.timeline import timeline_csv
 from dtwin_jax.sampler import SuffStats
 from dtwin_jax.update.from_data import update_from_data
@@ -54,23 +55,41 @@ def _synthetic(key, K=12, n0=400, n=300, windows=4000, shift=0.0):
 def test_the_window_test_holds_its_false_alarm_rate_and_sees_a_small_shift():
     priors, windows = _synthetic(jax.random.key(0))
     test = jax.vmap(window_test)(priors, windows)
-    p = np.asarray(test.p_value[:, 0])
+    p = np.asarray(test.p_all[:, 0])
     assert np.all(np.asarray(test.df) == 12)
     # Uniform p-values: the chi-square is exact here (4000 windows).
     assert stats.kstest(p, "uniform").statistic < 0.025
     assert abs(np.mean(p < 0.01) - 0.01) < 0.005 and abs(np.mean(p < 0.1) - 0.1) < 0.015
+    # Each term's z is standard normal; the largest, Bonferroni-corrected, and the window's
+    # p-value are conservative (to three binomial standard deviations).
+    for q in (test.p_term[:, 0], test.p_value[:, 0]):
+        assert np.mean(np.asarray(q) < 0.05) < 0.05 + 0.010 and np.mean(np.asarray(q) < 0.01) < 0.01 + 0.005
     one = window_test(*jax.tree.map(lambda a: a[7], (priors, windows)))
     assert np.allclose(one.statistic, test.statistic[7], rtol=1e-12)
     # A change: the power the noncentral chi-square predicts, at a false-alarm rate of 1e-3.
     shift = 0.2
     priors, shifted = _synthetic(jax.random.key(1), windows=400, shift=shift)
-    p_shift = np.asarray(jax.vmap(window_test)(priors, shifted).p_value[:, 0])
+    found = jax.vmap(window_test)(priors, shifted)
+    p_shift = np.asarray(found.p_all[:, 0])
     G = np.asarray(shifted.gram[:, 0])
     V = np.asarray(priors.sigma2[:, 0, None, None]) * G + G @ np.asarray(priors.cov[:, 0]) @ G
     Gd = G[:, :, 0] * shift  # the mean score G delta
     ncp = np.einsum("ik,ik->i", Gd, np.linalg.solve(V, Gd[..., None])[..., 0])
     predicted = np.mean(stats.ncx2.sf(stats.chi2.isf(1e-3, 12), 12, ncp))
     assert 0.3 < predicted < 0.9 and abs(np.mean(p_shift < 1e-3) - predicted) < 0.06
+    # A change one term carries: its own score is the largest in most windows, and the
+    # window's p-value (both tests) sees it more often than the chi-square alone.
+    assert np.mean(np.asarray(found.term[:, 0]) == 0) > 0.8
+    assert np.mean(np.asarray(found.p_value[:, 0]) < 1e-3) > np.mean(p_shift < 1e-3) + 0.1
+
+
+def test_fisher_combination_is_scipys_and_the_combined_p_value_counts_its_tries():
+    for p in ([0.01, 0.2, 0.5], [0.3], [1e-5, 0.9]):
+        assert fisher_combination(p) == pytest.approx(stats.combine_pvalues(p).pvalue, rel=1e-12)
+    assert combined_p_value(0.2, []) == 0.2
+    # Three windows at 0.01 each: the window alone 0.01, with the last one 1.0e-3, all three 1.1e-4.
+    assert combined_p_value(0.01, [0.01, 0.01]) == pytest.approx(3 * fisher_combination([0.01] * 3), rel=1e-12)
+    assert combined_p_value(0.01, [0.01, 0.01]) < 1e-3 < combined_p_value(0.01, [0.01])
 
 
 @pytest.fixture(scope="module")
@@ -109,7 +128,7 @@ def test_a_stiffness_drop_and_a_new_term_are_flagged_when_they_appear_and_named(
     # One row per window; the terms ever selected as columns.
     header, *rows = timeline_csv(mon.timeline).splitlines()
     assert len(rows) == 6 and "pip[x2:x1]" in header and "mean[x2:sign(x2)]" in header
-    assert rows[1].split(",")[3] == "True" and rows[1].split(",")[7] == "x2:x1"
+    assert rows[1].split(",")[3] == "True" and rows[1].split(",")[8] == "x2:x1"
 
 
 @pytest.fixture

@@ -2,8 +2,9 @@
 structure in service").
 
 Each window is first tested against the twin as it stood before it
-(:func:`~dtwin_jax.monitor.change.window_test`, false-alarm rate ``false_alarm`` per
-window), then absorbed: without an alarm the twin is re-updated with the older data
+(:func:`~dtwin_jax.monitor.change.window_test`; a change that persists also by the window
+together with the one or two before it, :func:`combined_p_value`; false-alarm rate
+``false_alarm`` per window), then absorbed: without an alarm the twin is re-updated with the older data
 discounted by ``forget``; after an alarm it restarts from the nominal prior on the window
 alone, and the alarm names its reasons (terms that appeared or disappeared, coefficients that
 left their 95% interval). Every window's entry rides in the twin's history, so the twin
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import math
 import time
 
 import numpy as np
@@ -24,11 +26,32 @@ from dtwin_jax.monitor.change import belief, window_statistics, window_test
 from dtwin_jax.update.from_data import update_from_data
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 
-__all__ = ["MONITOR_SETTINGS", "Monitor", "alarm_reasons", "data_fingerprint", "first_alarm"]
+__all__ = ["LOOKBACK", "MONITOR_SETTINGS", "Monitor", "alarm_reasons", "combined_p_value", "data_fingerprint",
+           "first_alarm", "fisher_combination"]
 
 # Two chains of 1000 draws: a 1 s window tested and absorbed in about 0.2 s warm on one core.
 MONITOR_SETTINGS = SamplerSettings(num_chains=2, num_draws=1000, num_burnin=500)
 RESTART_PRIOR = "spike-and-slab (restarted: the window disagreed with the twin)"
+# A change that persists is tested on this window and up to LOOKBACK - 1 before it (since the
+# last restart) together: Fisher's combination of their p-values.
+LOOKBACK = 3
+
+
+def fisher_combination(p_values) -> float:
+    """P-value of Fisher's combination of ``L`` independent p-values: ``-2 sum log p`` is
+    chi-square with ``2 L`` degrees of freedom, whose survival function is
+    ``exp(-s) sum_{j < L} s^j / j!`` at ``s = -sum log p``."""
+    p = np.clip(np.asarray(p_values, dtype=float), 1e-300, 1.0)
+    s = -np.sum(np.log(p))
+    return float(np.exp(-s) * sum(s**j / math.factorial(j) for j in range(p.size)))
+
+
+def combined_p_value(p_window: float, earlier: list[float]) -> float:
+    """The window's p-value for the alarm: the smallest of the window alone and its Fisher
+    combinations with the ``1 .. LOOKBACK - 1`` windows before it (``earlier``, newest first),
+    times the number of combinations tried (Bonferroni)."""
+    tried = [p_window] + [fisher_combination([p_window] + earlier[:j]) for j in range(1, len(earlier) + 1)]
+    return float(min(1.0, min(tried) * len(tried)))
 
 
 def alarm_reasons(before: UpdateResult, after: UpdateResult) -> tuple[list[str], list[str], list[str]]:
@@ -125,6 +148,16 @@ class Monitor:
         fp = data_fingerprint(data)
         return any(w.get("data_sha256") == fp for w in self.timeline)
 
+    def _earlier(self) -> list[float]:
+        """The window-alone p-values of up to ``LOOKBACK - 1`` windows before this one, newest
+        first, back to the last restart (a restarted window tested the twin it replaced)."""
+        out = []
+        for w in reversed(self.timeline):
+            if w.get("restarted") or len(out) == LOOKBACK - 1 or not isinstance(w.get("p_window"), float):
+                break
+            out.append(w["p_window"])
+        return out
+
     def _update(self, data: dict, source: str, previous, seed: int) -> UpdateResult:
         t = self.twin
         return update_from_data(t.mode, t.nominal, data, library=t.library,
@@ -145,17 +178,19 @@ class Monitor:
         **Returns:** the window's entry of the timeline (formats.md), also appended to the
         twin's history: ``index``, ``source``, ``t_start``, ``alarm``, ``new_terms``,
         ``dropped_terms``, ``changed_terms``, ``seconds``, ``equations``, and ``p_value`` (the
-        window's, over every drift equation), ``test`` (each equation's statistic, degrees
-        of freedom and p-value) and ``restarted``.
+        alarm's: :func:`combined_p_value`), ``p_window`` (this window's alone, over every drift
+        equation), ``test`` (each equation's statistic, degrees of freedom and p-value),
+        ``restarted`` and ``data_sha256`` (:func:`data_fingerprint`).
         """
         start = time.perf_counter()
         before = self.twin
         seed = self.seed + len(before.history)
         after = self._update(data, source, before, seed)
         test = window_test(belief(before), window_statistics(after, before, self.forget))
-        stat, df, p = (np.asarray(a) for a in test)
+        stat, df, p_all, term, z, p_term, p = (np.asarray(a) for a in test)
         p_window = float(min(1.0, p.min() * p.size))  # Bonferroni over the equations
-        alarm = p_window < self.false_alarm
+        p_combined = combined_p_value(p_window, self._earlier())
+        alarm = p_combined < self.false_alarm
         new = dropped = changed = []
         if alarm:  # the older data no longer describe the structure: start again from this window
             fresh = self._update(data, source, None, seed)
@@ -173,9 +208,11 @@ class Monitor:
             "changed_terms": changed,
             "seconds": round(time.perf_counter() - start, 4),
             "equations": [e.to_json() for e in after.equations],
-            "p_value": p_window,
-            "test": [{"state": e.state, "statistic": float(stat[j]), "df": int(df[j]), "p_value": float(p[j])}
-                     for j, e in enumerate(drift)],
+            "p_value": p_combined,
+            "p_window": p_window,
+            "test": [{"state": e.state, "statistic": float(stat[j]), "df": int(df[j]), "p_all": float(p_all[j]),
+                      "term": e.names[int(term[j])], "z": float(z[j]), "p_term": float(p_term[j]),
+                      "p_value": float(p[j])} for j, e in enumerate(drift)],
             "restarted": bool(alarm),
             "data_sha256": data_fingerprint(data),
         }

@@ -10,7 +10,7 @@ from dtwin_jax.monitor.service import first_alarm
 
 __all__ = ["ever_selected", "timeline_json", "timeline_csv", "write_timeline"]
 
-_FIXED = ("index", "source", "t_start", "alarm", "p_value", "restarted", "seconds")
+_FIXED = ("index", "source", "t_start", "alarm", "p_value", "p_window", "restarted", "seconds")
 _REASONS = ("new_terms", "dropped_terms", "changed_terms")
 
 

@@ -52,7 +52,12 @@ from dtwin_jax.preprocess.weak_form_accelerometers import accelerometer_weak_sta
 from dtwin_jax.progress import Stages
 from dtwin_jax.resources import check_update
 from dtwin_jax.sampler import SuffStats
-from dtwin_jax.update.lifecycle import updated_history
+from dtwin_jax.update.lifecycle import (
+    check_previous,
+    check_repeat,
+    updated_history,
+    with_previous,
+)
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 from dtwin_jax.update.sampling import numpy_stats, posteriors, sample_equations
 
@@ -69,7 +74,7 @@ _INTERPOLATION = "bandlimited"
 
 def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, lib: Library, *,
                                pip_threshold: float, settings: SamplerSettings, seed: int, progress: bool,
-                               previous, forget: float) -> UpdateResult:
+                               previous, forget: float, allow_repeat: bool = False) -> UpdateResult:
     """Discover the drift perturbation and the constant diffusion of ``nominal`` from
     accelerometers alone (called by :func:`~dtwin_jax.output_only.update.update_output_only`).
 
@@ -84,16 +89,20 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
     - ``lib``: the drift library (no inputs); a constant column is left out with a warning.
     - ``pip_threshold``, ``settings``, ``seed``, ``progress``: as
       :func:`~dtwin_jax.output_only.update.update_output_only`.
-    - ``previous``, ``forget``: a re-update; not taken yet (refused in one line).
+    - ``previous``, ``forget``, ``allow_repeat``: a re-update: the drift's statistics and the
+      constant diffusion's pseudo-observations of ``previous``, times ``forget``, are added to
+      this window's (:func:`~dtwin_jax.update.lifecycle.with_previous`). The states are this
+      window's own (its anchor selects from this window alone).
 
     **Returns:** an :class:`UpdateResult` of mode ``"output-only"``: one ``drift`` equation per
     velocity and one ``diffusion`` equation (the constant ``Gamma_ii``, velocity^2 / s)."""
     start = time.perf_counter()
-    if previous is not None:
-        raise DataError("re-updates from accelerometers alone are not supported yet: update from the records together")
     x, _ = accelerometer_layout(nominal, xdot, xdot_names, None)
     xdot_index = measured_index(xdot_names, nominal, "xdot_names")
     rec = check_records(t, x, None, xdot, nominal, x_columns=0, xdot_columns=len(xdot_index))
+    if previous is not None and previous.preprocessing.get("diffusion_library") != CONSTANT_DIFFUSION:
+        raise DataError("a re-update from accelerometers alone needs a twin updated from accelerometers alone "
+                        "(a constant diffusion)")
     if np.any(np.asarray(nominal.F0) != 0):
         raise DataError("output-only updates do not take a nominal F0 yet: set it to zero")
     R, N = rec.xdot.shape[:2]
@@ -105,6 +114,8 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
     if dropped:
         warnings.append("accelerometers do not see a constant force (a static displacement): "
                         + ", ".join(dropped) + " left out of the library")
+    check_previous(previous, "output-only", nominal, lib, forget)
+    check_repeat(previous, rec, allow_repeat)
     vel = list(nominal.velocity_index)
     a = rec.xdot[..., [xdot_index.index(i) for i in vel]]
     dt, M2 = rec.dt, np.diag(np.asarray(nominal.M)) ** 2
@@ -131,7 +142,7 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
             sensor, force = _split(weak)
     with stages("drift sampling"):
         draws, coef = states_info.pop("error_draws", None), states_info.pop("coefficients")
-        stats = increment_stats(nominal, lib, dt, a, xs)
+        stats = with_previous(increment_stats(nominal, lib, dt, a, xs), "drift", previous, forget)
         trace = jax.block_until_ready(sample_equations(stats, settings, seed, progress))
         errors = _errors_in_variables(nominal, lib, dt, a, xs, coef, draws)
         if errors is not None:  # the states' estimation error, in the selected terms' draws
@@ -140,7 +151,13 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
     with stages("diffusion"), stages:
         # The increments' noise scale carries the estimate's spread (its level is the split's).
         sigma2 = np.asarray(trace.sigma2)  # (d, chains, draws)
-        gamma_draws = (force * dt)[:, None, None] * sigma2 / sigma2.mean(axis=(1, 2), keepdims=True)
+        spread = sigma2 / sigma2.mean(axis=(1, 2), keepdims=True)
+        gamma_draws = (force * dt)[:, None, None] * spread
+        window_n = np.asarray(stats.n) if previous is None else np.asarray(stats.n) - forget * np.asarray(
+            previous.statistics["drift"].n)
+        diffusion_stats = with_previous(_constant_stats(gamma_draws, window_n), "diffusion", previous, forget)
+        if previous is not None:  # the pooled level, this window's relative spread
+            gamma_draws = (np.asarray(diffusion_stats.xty)[:, 0] / np.asarray(diffusion_stats.n))[:, None, None] * spread
         velocities = [nominal.state_names[i] for i in vel]
         diffusion = [EquationPosterior(v, "diffusion", ("1",), np.ones(g.shape + (1,), dtype=bool), g[..., None],
                                        sigma2[j], pip_threshold) for j, (v, g) in enumerate(zip(velocities, gamma_draws))]
@@ -170,12 +187,12 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
             "diffusion_ml": (force * dt).tolist(),
             "records": int(R),
             "samples": int(R * N),
-            "state_range": state_range(xs, None),
+            "state_range": state_range(xs, previous),
             "stage_seconds": dict(stages.seconds),
         },
         checks=checks,
-        statistics={"drift": numpy_stats(stats), "diffusion": _constant_stats(gamma_draws, np.asarray(stats.n))},
-        history=updated_history(None, "output-only", rec, forget, equations, time.perf_counter() - start),
+        statistics={"drift": numpy_stats(stats), "diffusion": numpy_stats(diffusion_stats)},
+        history=updated_history(previous, "output-only", rec, forget, equations, time.perf_counter() - start),
     )
 
 

@@ -81,7 +81,7 @@ def update_output_only(
       independent records, every state measured; pooled into one regression. None with
       ``xdot``: accelerometers alone (ambient vibration,
       :func:`~dtwin_jax.output_only.accelerometers.update_from_accelerometers`: a
-      constant diffusion, no re-update yet).
+      constant diffusion).
     - ``xdot``, ``xdot_names``: the accelerometers' samples and their states (the rates of
       the velocity states), with ``x=None``; beside ``x`` they are refused in one line.
     - ``library``: the drift library, a spec (formats.md) or :class:`Library` (default
@@ -106,7 +106,7 @@ def update_output_only(
         return update_from_accelerometers(
             nominal, t, xdot, xdot_names, output_only_library(library, nominal, OUTPUT_ONLY_LIBRARY),
             pip_threshold=pip_threshold, settings=settings, seed=seed, progress=progress, previous=previous,
-            forget=forget)
+            forget=forget, allow_repeat=allow_repeat)
     if xdot is not None:
         raise DataError("output-only takes the states 'x' or accelerometers alone ('xdot' without 'x'), not both yet")
     rec = check_records(t, x, None, None, nominal)
