@@ -18,7 +18,7 @@ from dtwin_jax.io.store import load_twin, save_twin
 from dtwin_jax.models import zoo
 from dtwin_jax.models.lives import simulate_life
 from dtwin_jax.monitor import MONITOR_SETTINGS, Belief, Monitor, window_test
-from dtwin_jax.monitor.service import combined_p_value, fisher_combination
+from dtwin_jax.monitor.service import combined_p_value, pooled_tests
 from dtwin_jax.monitor.timeline import timeline_csv
 from dtwin_jax.sampler import SuffStats
 from dtwin_jax.update.from_data import update_from_data
@@ -83,13 +83,18 @@ def test_the_window_test_holds_its_false_alarm_rate_and_sees_a_small_shift():
     assert np.mean(np.asarray(found.p_value[:, 0]) < 1e-3) > np.mean(p_shift < 1e-3) + 0.1
 
 
-def test_fisher_combination_is_scipys_and_the_combined_p_value_counts_its_tries():
-    for p in ([0.01, 0.2, 0.5], [0.3], [1e-5, 0.9]):
-        assert fisher_combination(p) == pytest.approx(stats.combine_pvalues(p).pvalue, rel=1e-12)
-    assert combined_p_value(0.2, []) == 0.2
-    # Three windows at 0.01 each: the window alone 0.01, with the last one 1.0e-3, all three 1.1e-4.
-    assert combined_p_value(0.01, [0.01, 0.01]) == pytest.approx(3 * fisher_combination([0.01] * 3), rel=1e-12)
-    assert combined_p_value(0.01, [0.01, 0.01]) < 1e-3 < combined_p_value(0.01, [0.01])
+def test_pooled_windows_see_a_change_no_window_shows_alone():
+    # Five windows after a small shift, each tested alone and pooled against a twin of ten
+    # windows' data before the first: the pooled p-value falls as the windows add up.
+    priors, shifted = _synthetic(jax.random.key(2), n0=3000, windows=5, shift=0.08)
+    prior = jax.tree.map(lambda a: a[0], priors)
+    windows = [jax.tree.map(lambda a, j=j: a[j], shifted) for j in range(5)]
+    alone = [float(window_test(prior, w).p_value[0]) for w in windows]
+    tests = pooled_tests(prior, windows[4], [(w, prior) for w in windows[3::-1]])
+    p, p_window = combined_p_value(tests)
+    assert p_window == pytest.approx(alone[4]) and min(alone) > 0.02
+    pooled = [float(t.p_value[0]) for t in tests]
+    assert pooled[-1] < 1e-5 and p == pytest.approx(5 * min(pooled)) and p < 1e-4
 
 
 @pytest.fixture(scope="module")

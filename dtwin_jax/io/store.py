@@ -355,7 +355,9 @@ def _statistics(head, blobs, folder, equations) -> dict:
         eqs = [e for e in equations if e.kind == kind]
         if eqs:
             shapes[kind] = (len(eqs), len(eqs[0].names))
-    stats = twin_files.read_statistics(blobs["statistics.npz"], str(folder / "statistics.npz"), shapes)
+    optional = {kind: shapes["drift"] for kind in twin_files.RECENT_KINDS} if "drift" in shapes else {}
+    stats = twin_files.read_statistics(blobs["statistics.npz"], str(folder / "statistics.npz"), shapes, optional,
+                                       twin_files.MAX_RECENT)
     return {kind: sampler.SuffStats(*(s[f] for f in sampler.SuffStats._fields)) for kind, s in stats.items()}
 
 

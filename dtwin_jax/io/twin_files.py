@@ -23,7 +23,7 @@ import numpy as np
 
 from dtwin_jax.errors import DataError
 
-__all__ = ["sha256", "check_header", "read_posterior", "read_statistics", "read_term_names"]
+__all__ = ["MAX_RECENT", "RECENT_KINDS", "sha256", "check_header", "read_posterior", "read_statistics", "read_term_names"]
 
 MODES = ("input-output", "output-only")
 KINDS = ("drift", "diffusion")
@@ -253,21 +253,42 @@ def read_posterior(data: bytes, name: str, equations: list[tuple[str, str, int]]
     return out
 
 
-def read_statistics(data: bytes, name: str, expected: dict[str, tuple[int, int]]) -> dict:
+# A monitored twin also keeps its last windows (dtwin_jax.monitor): their statistics and the
+# twin's belief before each (mean as xty, covariance as gram, residual variance as yty),
+# newest first, at most MAX_RECENT.
+RECENT_KINDS = ("recent_windows", "recent_beliefs")
+MAX_RECENT = 4
+
+
+def read_statistics(data: bytes, name: str, expected: dict[str, tuple[int, int]],
+                    optional: dict[str, tuple[int, int]] | None = None, max_lead: int = 0) -> dict:
     """The sufficient statistics of ``statistics.npz`` (bytes): ``expected`` maps each kind
     to ``(q equations, K terms)``; returns ``kind -> {gram (q, K, K), xty (q, K), yty (q,),
-    n (q,)}`` as float64, exactly those keys, no pickled objects."""
+    n (q,)}`` as float64, exactly those keys, no pickled objects. ``optional`` kinds (a
+    monitor's recent windows) may be there or not, all together, each with a leading axis of
+    the same length ``P <= max_lead``."""
+    optional = optional or {}
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
             files = set(z.files)
-            want = {f"{kind}_{field}" for kind in expected for field in _STATS_FIELDS}
+            lead = {k: z[f"{k}_n"].shape[:1] for k in optional if f"{k}_n" in files}
+            present = {k: v for k, v in optional.items() if k in lead} if lead else {}
+            if lead and len(present) < len(optional):
+                missing = sorted(set(optional) - set(present))[0]
+                raise DataError(f"'{name}' is missing key '{missing}_n'")
+            kinds = {**{k: ((), v) for k, v in expected.items()}, **{k: (lead[k], v) for k, v in present.items()}}
+            want = {f"{kind}_{field}" for kind in kinds for field in _STATS_FIELDS}
             if files != want:
                 extra, missing = sorted(files - want), sorted(want - files)
                 what = f"is missing key '{missing[0]}'" if missing else f"has unexpected key '{extra[0]}'"
                 raise DataError(f"'{name}' {what}")
+            leads = {shape for shape, _ in kinds.values() if shape}
+            if len(leads) > 1 or any(not 1 <= P <= max_lead for (P,) in leads):
+                raise DataError(f"'{name}': the recent windows' statistics have lengths {sorted(leads)}; expected one "
+                                f"length from 1 to {max_lead}")
             out = {}
-            for kind, (q, K) in expected.items():
-                shapes = {"gram": (q, K, K), "xty": (q, K), "yty": (q,), "n": (q,)}
+            for kind, (P, (q, K)) in kinds.items():
+                shapes = {"gram": P + (q, K, K), "xty": P + (q, K), "yty": P + (q,), "n": P + (q,)}
                 out[kind] = {}
                 for field in _STATS_FIELDS:
                     a = z[f"{kind}_{field}"]

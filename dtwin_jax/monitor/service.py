@@ -3,8 +3,8 @@ structure in service").
 
 Each window is first tested against the twin as it stood before it
 (:func:`~dtwin_jax.monitor.change.window_test`; a change that persists also by the window
-together with the one or two before it, :func:`combined_p_value`; false-alarm rate
-``false_alarm`` per window), then absorbed: without an alarm the twin is re-updated with the older data
+pooled with up to four before it, :func:`pooled_tests`; false-alarm rate ``false_alarm``
+per window), then absorbed: without an alarm the twin is re-updated with the older data
 discounted by ``forget``; after an alarm it restarts from the nominal prior on the window
 alone, and the alarm names its reasons (terms that appeared or disappeared, coefficients that
 left their 95% interval). Every window's entry rides in the twin's history, so the twin
@@ -16,42 +16,71 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import math
 import time
 
 import numpy as np
 
 from dtwin_jax.errors import DataError
-from dtwin_jax.monitor.change import belief, window_statistics, window_test
+from dtwin_jax.io.twin_files import MAX_RECENT, RECENT_KINDS
+from dtwin_jax.monitor.change import Belief, belief, window_statistics, window_test
+from dtwin_jax.sampler import SuffStats
 from dtwin_jax.update.from_data import update_from_data
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 
 __all__ = ["LOOKBACK", "MONITOR_SETTINGS", "Monitor", "alarm_reasons", "combined_p_value", "data_fingerprint",
-           "first_alarm", "fisher_combination"]
+           "first_alarm", "pooled_tests", "recent_windows"]
 
 # Two chains of 1000 draws: a 1 s window tested and absorbed in about 0.2 s warm on one core.
 MONITOR_SETTINGS = SamplerSettings(num_chains=2, num_draws=1000, num_burnin=500)
 RESTART_PRIOR = "spike-and-slab (restarted: the window disagreed with the twin)"
-# A change that persists is tested on this window and up to LOOKBACK - 1 before it (since the
-# last restart) together: Fisher's combination of their p-values.
-LOOKBACK = 3
+# A change that persists is also tested on this window pooled with up to LOOKBACK - 1 windows
+# before it (since the last restart), against the twin as it stood before the oldest of them.
+LOOKBACK = MAX_RECENT + 1
 
 
-def fisher_combination(p_values) -> float:
-    """P-value of Fisher's combination of ``L`` independent p-values: ``-2 sum log p`` is
-    chi-square with ``2 L`` degrees of freedom, whose survival function is
-    ``exp(-s) sum_{j < L} s^j / j!`` at ``s = -sum log p``."""
-    p = np.clip(np.asarray(p_values, dtype=float), 1e-300, 1.0)
-    s = -np.sum(np.log(p))
-    return float(np.exp(-s) * sum(s**j / math.factorial(j) for j in range(p.size)))
+def recent_windows(result: UpdateResult) -> list[tuple[SuffStats, Belief]]:
+    """A monitored twin's last windows, newest first: each window's drift statistics and the
+    twin's :class:`~dtwin_jax.monitor.change.Belief` before it (empty after a restart)."""
+    windows, beliefs = (result.statistics.get(kind) for kind in RECENT_KINDS)
+    if windows is None or beliefs is None:
+        return []
+    out = []
+    for j in range(np.shape(windows.n)[0]):
+        w = SuffStats(*(np.asarray(a)[j] for a in windows))
+        b = Belief(np.asarray(beliefs.xty)[j], np.asarray(beliefs.gram)[j], np.asarray(beliefs.yty)[j])
+        out.append((w, b))
+    return out
 
 
-def combined_p_value(p_window: float, earlier: list[float]) -> float:
-    """The window's p-value for the alarm: the smallest of the window alone and its Fisher
-    combinations with the ``1 .. LOOKBACK - 1`` windows before it (``earlier``, newest first),
-    times the number of combinations tried (Bonferroni)."""
-    tried = [p_window] + [fisher_combination([p_window] + earlier[:j]) for j in range(1, len(earlier) + 1)]
-    return float(min(1.0, min(tried) * len(tried)))
+def _with_recent(statistics: dict, recent: list[tuple[SuffStats, Belief]]) -> dict:
+    """``statistics`` with ``recent`` (newest first) as the store keeps it."""
+    out = {k: v for k, v in statistics.items() if k not in RECENT_KINDS}
+    if recent:
+        out[RECENT_KINDS[0]] = SuffStats(*(np.stack([np.asarray(getattr(w, f)) for w, _ in recent])
+                                           for f in SuffStats._fields))
+        out[RECENT_KINDS[1]] = SuffStats(np.stack([np.asarray(b.cov) for _, b in recent]),
+                                         np.stack([np.asarray(b.mean) for _, b in recent]),
+                                         np.stack([np.asarray(b.sigma2) for _, b in recent]),
+                                         np.zeros((len(recent),) + np.shape(recent[0][1].sigma2)))
+    return out
+
+
+def pooled_tests(prior: Belief, window: SuffStats, recent: list[tuple[SuffStats, Belief]]) -> list:
+    """The window against ``prior`` (the twin before it), then the window pooled with the
+    ``1 .. len(recent)`` windows before it against the twin before the oldest of those:
+    one :class:`~dtwin_jax.monitor.change.ChangeTest` each."""
+    tests, pooled = [window_test(prior, window)], window
+    for w, b in recent:
+        pooled = SuffStats(*(np.asarray(x) + np.asarray(y) for x, y in zip(pooled, w)))
+        tests.append(window_test(b, pooled))
+    return tests
+
+
+def combined_p_value(tests) -> tuple[float, float]:
+    """``(p for the alarm, the window's alone)``: each test's smallest equation p-value times
+    the equations (Bonferroni), and the smallest over the tests times their number."""
+    p = [float(min(1.0, np.min(np.asarray(t.p_value)) * np.size(t.p_value))) for t in tests]
+    return float(min(1.0, min(p) * len(p))), p[0]
 
 
 def alarm_reasons(before: UpdateResult, after: UpdateResult) -> tuple[list[str], list[str], list[str]]:
@@ -148,16 +177,6 @@ class Monitor:
         fp = data_fingerprint(data)
         return any(w.get("data_sha256") == fp for w in self.timeline)
 
-    def _earlier(self) -> list[float]:
-        """The window-alone p-values of up to ``LOOKBACK - 1`` windows before this one, newest
-        first, back to the last restart (a restarted window tested the twin it replaced)."""
-        out = []
-        for w in reversed(self.timeline):
-            if w.get("restarted") or len(out) == LOOKBACK - 1 or not isinstance(w.get("p_window"), float):
-                break
-            out.append(w["p_window"])
-        return out
-
     def _update(self, data: dict, source: str, previous, seed: int) -> UpdateResult:
         t = self.twin
         return update_from_data(t.mode, t.nominal, data, library=t.library,
@@ -179,17 +198,19 @@ class Monitor:
         twin's history: ``index``, ``source``, ``t_start``, ``alarm``, ``new_terms``,
         ``dropped_terms``, ``changed_terms``, ``seconds``, ``equations``, and ``p_value`` (the
         alarm's: :func:`combined_p_value`), ``p_window`` (this window's alone, over every drift
-        equation), ``test`` (each equation's statistic, degrees of freedom and p-value),
+        equation), ``pooled`` (the window alone, then pooled with 1, 2, ... windows before
+        it), ``test`` (of the window alone) (each equation's statistic, degrees of freedom and p-value),
         ``restarted`` and ``data_sha256`` (:func:`data_fingerprint`).
         """
         start = time.perf_counter()
         before = self.twin
         seed = self.seed + len(before.history)
         after = self._update(data, source, before, seed)
-        test = window_test(belief(before), window_statistics(after, before, self.forget))
-        stat, df, p_all, term, z, p_term, p = (np.asarray(a) for a in test)
-        p_window = float(min(1.0, p.min() * p.size))  # Bonferroni over the equations
-        p_combined = combined_p_value(p_window, self._earlier())
+        prior, window = belief(before), window_statistics(after, before, self.forget)
+        recent = recent_windows(before)
+        tests = pooled_tests(prior, window, recent)
+        p_combined, p_window = combined_p_value(tests)
+        stat, df, p_all, term, z, p_term, p = (np.asarray(a) for a in tests[0])
         alarm = p_combined < self.false_alarm
         new = dropped = changed = []
         if alarm:  # the older data no longer describe the structure: start again from this window
@@ -197,6 +218,8 @@ class Monitor:
             entry = {**fresh.history[-1], "update": len(before.history) + 1, "prior": RESTART_PRIOR}
             after = dataclasses.replace(fresh, history=list(before.history) + [entry])
             new, dropped, changed = alarm_reasons(before, after)
+        recent = [] if alarm else [(window, prior)] + recent[:LOOKBACK - 2]
+        after = dataclasses.replace(after, statistics=_with_recent(after.statistics, recent))
         drift = [e for e in before.equations if e.kind == "drift"]
         record = {
             "index": len(self.timeline),
@@ -210,6 +233,7 @@ class Monitor:
             "equations": [e.to_json() for e in after.equations],
             "p_value": p_combined,
             "p_window": p_window,
+            "pooled": [float(min(1.0, np.min(np.asarray(t.p_value)) * np.size(t.p_value))) for t in tests],
             "test": [{"state": e.state, "statistic": float(stat[j]), "df": int(df[j]), "p_all": float(p_all[j]),
                       "term": e.names[int(term[j])], "z": float(z[j]), "p_term": float(p_term[j]),
                       "p_value": float(p[j])} for j, e in enumerate(drift)],
