@@ -2,8 +2,8 @@
 over the devices (and hosts) that JAX sees.
 
 Each structure of a fleet is monitored as :class:`~dtwin_jax.monitor.Monitor` monitors one
-(the same score tests, Fisher's combination over the last windows, the discounted update or
-the restart), on input-output windows with every state, its rate and the force measured: the
+(the same score tests, the window alone and pooled with the last ones, the discounted update
+or the restart), on input-output windows with every state, its rate and the force measured: the
 jittable chain of :func:`dtwin_jax.input_output.targets.input_output_stats` (kinematic
 smoother, targets, statistics with the input-noise correction), then the Gibbs sampler on
 every equation. :func:`fleet_step` is a pure function of arrays, vmapped over the structures;
@@ -15,7 +15,6 @@ every equation. :func:`fleet_step` is a pure function of arrays, vmapped over th
 from __future__ import annotations
 
 import functools
-import math
 from typing import NamedTuple
 
 import jax
@@ -35,11 +34,13 @@ FLEET_AXIS = "fleet"
 
 
 class FleetState(NamedTuple):
-    """What a fleet of ``F`` structures carries from one window to the next."""
+    """What a fleet of ``F`` structures carries from one window to the next (``P = LOOKBACK - 1``)."""
 
     belief: Belief  # (F, q, K), (F, q, K, K), (F, q): each twin's drift coefficients
     stats: SuffStats  # (F, q, K, K), (F, q, K), (F, q), (F, q): the statistics they were sampled from
-    recent: jax.Array  # (F, LOOKBACK - 1) window p-values since the last restart, newest first (NaN: none)
+    recent_windows: SuffStats  # (F, P, q, ...): the last windows' statistics, newest first
+    recent_beliefs: Belief  # (F, P, q, ...): the twin's belief before each of them
+    recent_count: jax.Array  # (F,) int: how many of them count (since the last restart)
     fresh: jax.Array  # (F,) bool: no twin yet (the next window is its baseline, untested)
 
 
@@ -55,23 +56,30 @@ class FleetReport(NamedTuple):
 
 def fleet_init(num_structures: int, num_equations: int, num_terms: int) -> FleetState:
     """A fleet with no twins yet: each structure's first window is its baseline."""
-    F, q, K = num_structures, num_equations, num_terms
-    zeros = functools.partial(jnp.zeros, dtype=jnp.float64)
-    return FleetState(Belief(zeros((F, q, K)), zeros((F, q, K, K)), jnp.ones((F, q))),
-                      SuffStats(zeros((F, q, K, K)), zeros((F, q, K)), zeros((F, q)), zeros((F, q))),
-                      jnp.full((F, LOOKBACK - 1), jnp.nan, dtype=jnp.float64), jnp.ones((F,), bool))
+    F, q, K, P = num_structures, num_equations, num_terms, LOOKBACK - 1
+
+    def stats(*lead):
+        return SuffStats(*(jnp.zeros(lead + s, jnp.float64) for s in ((q, K, K), (q, K), (q,), (q,))))
+
+    def belief(*lead):
+        return Belief(jnp.zeros(lead + (q, K), jnp.float64), jnp.zeros(lead + (q, K, K), jnp.float64),
+                      jnp.ones(lead + (q,), jnp.float64))
+
+    return FleetState(belief(F), stats(F), stats(F, P), belief(F, P), jnp.zeros((F,), jnp.int32),
+                      jnp.ones((F,), bool))
 
 
-def _combined(p_window, recent):
-    """:func:`~dtwin_jax.monitor.service.combined_p_value` of one structure, jittable."""
-    p = jnp.clip(jnp.concatenate([p_window[None], recent]), 1e-300, 1.0)
-    valid = jnp.cumprod(jnp.isfinite(jnp.concatenate([jnp.ones(1), recent]))).astype(bool)
-    s = jnp.cumsum(jnp.where(valid, -jnp.log(jnp.where(valid, p, 1.0)), 0.0))  # -sum log p over the first L
-    L = jnp.arange(1, p.size + 1)
-    terms = jnp.stack([s**j / math.factorial(j) for j in range(p.size)], axis=-1)  # (L, j)
-    sf = jnp.exp(-s) * jnp.sum(jnp.where(jnp.arange(p.size)[None, :] < L[:, None], terms, 0.0), axis=-1)
-    tried = jnp.sum(valid)
-    return jnp.minimum(1.0, jnp.min(jnp.where(valid, sf, jnp.inf)) * tried)
+def _alarm_p(st: FleetState, belief: Belief, window: SuffStats):
+    """:func:`~dtwin_jax.monitor.service.combined_p_value` of the pooled tests of one
+    structure (:func:`~dtwin_jax.monitor.service.pooled_tests`), jittable: ``(p, p_window)``."""
+    cums = jax.tree.map(lambda w, r: jnp.concatenate([w[None], w[None] + jnp.cumsum(r, axis=0)]), window,
+                        st.recent_windows)
+    priors = jax.tree.map(lambda b, r: jnp.concatenate([b[None], r]), belief, st.recent_beliefs)
+    tests = jax.vmap(window_test)(priors, cums)
+    q = tests.p_value.shape[-1]
+    p = jnp.minimum(1.0, jnp.min(tests.p_value, axis=-1) * q)  # (P + 1,)
+    valid = jnp.arange(p.size) <= st.recent_count
+    return jnp.minimum(1.0, jnp.min(jnp.where(valid, p, jnp.inf)) * jnp.sum(valid)), p[0]
 
 
 def _belief(trace) -> Belief:
@@ -104,19 +112,19 @@ def fleet_step(state: FleetState, x, u, xdot, nominal, keys, *, lib: Library, dt
 
     def one(st: FleetState, x, u, xdot, nominal, key):
         window = input_output_stats(nominal, lib, dt, x, u, xdot, half_width)
-        test = window_test(st.belief, window)
-        q = test.p_value.shape[0]
-        p_window = jnp.minimum(1.0, jnp.min(test.p_value) * q)
-        p_value = jnp.where(st.fresh, 1.0, _combined(p_window, st.recent))
+        q = window.n.shape[0]
+        p_value, p_window = _alarm_p(st, st.belief, window)
+        p_value, p_window = jnp.where(st.fresh, 1.0, p_value), jnp.where(st.fresh, 1.0, p_window)
         alarm = (p_value < false_alarm) & ~st.fresh
         restart = alarm | st.fresh
         stats = jax.tree.map(lambda w, old: jnp.where(restart, w, w + forget * old), window, st.stats)
         trace = jax.vmap(lambda k, s: sample(k, s, settings))(jax.random.split(key, q), stats)
         belief = Belief(*jax.vmap(_belief)(trace))
-        recent = jnp.where(restart, jnp.nan, jnp.concatenate([jnp.where(st.fresh, jnp.nan, p_window)[None],
-                                                               st.recent[:-1]]))
+        windows = jax.tree.map(lambda w, r: jnp.concatenate([w[None], r[:-1]]), window, st.recent_windows)
+        beliefs = jax.tree.map(lambda b, r: jnp.concatenate([b[None], r[:-1]]), st.belief, st.recent_beliefs)
+        count = jnp.where(restart, 0, jnp.minimum(st.recent_count + 1, LOOKBACK - 1))
         pip = trace.gamma.mean(axis=(1, 2))
-        return (FleetState(belief, stats, recent, jnp.zeros((), bool)),
+        return (FleetState(belief, stats, windows, beliefs, count, jnp.zeros((), bool)),
                 FleetReport(alarm, p_value, p_window, pip, belief.mean))
 
     return jax.vmap(one)(state, x, u, xdot, nominal, keys)
