@@ -6,6 +6,7 @@ targets): a zoo term that appears at window k, a 5% stiffness drop at window k, 
     taskset -c 0 python benchmarks/monitor_lives.py --kind term --lives 50
     taskset -c 0 python benchmarks/monitor_lives.py --kind stiffness --lives 50
     taskset -c 0 python benchmarks/monitor_lives.py --kind stationary --lives 50 --windows 21
+    taskset -c 0 python benchmarks/monitor_lives.py --kind weakening --lives 50 --windows 20
 
 Prints one line per life and the summary; `--out` appends the summary (markdown) to a file.
 """
@@ -21,16 +22,23 @@ import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax.models import zoo
 from dtwin_jax.models.lives import simulate_life
 from dtwin_jax.monitor import MONITOR_SETTINGS, Monitor
+from dtwin_jax.monitor.degradation import coefficient_track, remaining_life
 from dtwin_jax.update.from_data import update_from_data
 
 
-def _schedules(kind, W, k):
+def _schedules(kind, W, k, failure=None):
     scale, stiffness = np.ones(W), np.ones(W)
     if kind == "term":
         scale[:k] = 0.0
     elif kind == "stiffness":
         stiffness[k:] = 0.95
+    elif kind == "weakening":  # a straight loss that reaches CRITICAL_LOSS at the failure time
+        stiffness = 1.0 - CRITICAL_LOSS * np.arange(W) / failure
     return scale, stiffness
+
+
+# The weakening spring fails when it has lost this share of its stiffness.
+CRITICAL_LOSS = 0.2
 
 
 def _layout(window, layout):
@@ -46,7 +54,8 @@ def _layout(window, layout):
 def life(seed, kind, W, k, layout, framework, false_alarm, forget, seconds):
     member = zoo.draw_member(seed)
     ex = member.example._replace(duration=seconds)
-    scale, stiffness = _schedules(kind, W, k)
+    failure = float(np.random.default_rng(seed).uniform(1.5, 3.0) * W * seconds) if kind == "weakening" else None
+    scale, stiffness = _schedules(kind, W, k, failure and failure / seconds)
     output_only = framework == "output-only"
     windows = simulate_life(ex, jax.random.key(seed), scale=scale, stiffness=stiffness, level=0.05,
                             output_only=output_only)
@@ -60,6 +69,14 @@ def life(seed, kind, W, k, layout, framework, false_alarm, forget, seconds):
     t0 = time.perf_counter()
     entries = [mon.step(d, source=f"w{i}") for i, d in enumerate(data[1:], start=1)]
     alarms = [i for i, e in enumerate(entries, start=1) if e["alarm"]]
+    if kind == "weakening":  # the remaining life at the last window, from the stiffness's trend
+        nominal = ex.system.nominal
+        track = coefficient_track(mon.timeline, "x2:x1")
+        rul = remaining_life(track["t"], track["mean"], track["sd"],
+                             CRITICAL_LOSS * float(nominal.K[0, 0] / nominal.M[0, 0]))
+        return {"seed": seed, "family": member.family, "failure": failure, "lower": rul["lower"],
+                "median": rul["median"], "upper": rul["upper"], "covered": rul["lower"] <= failure <= rul["upper"],
+                "scale": rul["scale"], "alarms": alarms, "seconds": time.perf_counter() - t0}
     before = [i for i in alarms if kind == "stationary" or i < k]
     after = [i for i in alarms if kind != "stationary" and i >= k]
     return {"seed": seed, "family": member.family, "alarms": alarms, "false_alarms": len(before),
@@ -72,7 +89,7 @@ def life(seed, kind, W, k, layout, framework, false_alarm, forget, seconds):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--kind", choices=("term", "stiffness", "stationary"), default="term")
+    ap.add_argument("--kind", choices=("term", "stiffness", "stationary", "weakening"), default="term")
     ap.add_argument("--lives", type=int, default=50)
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--windows", type=int, default=11)
@@ -89,10 +106,29 @@ def main():
     a = ap.parse_args()
     within = a.within or (3 if a.kind == "term" else 5)
     rows = []
-    for seed in range(a.first_seed, a.first_seed + a.lives):
+    seeds = iter(range(a.first_seed, a.first_seed + 10 * a.lives))
+    for seed in (s for s in seeds if a.kind != "weakening" or zoo.draw_member(s).example.system.nominal.d == 1):
+        if len(rows) == a.lives:
+            break
         r = life(seed, a.kind, a.windows, a.change_at, a.layout, a.framework, a.false_alarm, a.forget, a.seconds)
         rows.append(r)
         print(json.dumps(r), flush=True)
+    if a.kind == "weakening":
+        covered = sum(r["covered"] for r in rows)
+        widths = [(r["upper"] - r["lower"]) / r["failure"] for r in rows]
+        lines = [f"## {a.framework}, {a.layout}, a weakening spring (SDOF members): {a.lives} lives (seeds "
+                 f"{a.first_seed}..), {a.windows} windows of {a.seconds:g} s, failure at {CRITICAL_LOSS:.0%} stiffness "
+                 "loss, 1.5-3x the monitored time", "",
+                 f"- true failure time inside the 90% interval: **{covered} / {len(rows)}**",
+                 f"- median interval width: {np.median(widths):.0%} of the failure time",
+                 f"- median error of the median: "
+                 f"{np.median([abs(r['median'] / r['failure'] - 1) for r in rows]):.1%}"]
+        text = "\n".join(lines) + "\n"
+        print(text)
+        if a.out:
+            with open(a.out, "a") as f:
+                f.write(text + "\n")
+        return
     tested = sum(r["tested_before"] for r in rows)
     false = sum(r["false_alarms"] for r in rows)
     lines = [f"## {a.framework}, {a.layout}, {a.kind}: {a.lives} lives (seeds {a.first_seed}..), "

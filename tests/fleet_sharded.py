@@ -8,11 +8,16 @@ import sys
 import jax
 import jax.numpy as jnp
 import numpy as np
+from fleet_settings import STATIC
 
 import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax.models.systems import LinearSecondOrder
-from fleet_settings import STATIC
-from dtwin_jax.monitor.fleet import fleet_init, fleet_mesh, fleet_sharding, sharded_fleet_step
+from dtwin_jax.monitor.fleet import (
+    fleet_init,
+    fleet_mesh,
+    fleet_sharding,
+    sharded_fleet_step,
+)
 
 
 def main(src, out):

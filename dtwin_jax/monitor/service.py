@@ -28,7 +28,7 @@ from dtwin_jax.update.from_data import update_from_data
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 
 __all__ = ["LOOKBACK", "MONITOR_SETTINGS", "Monitor", "alarm_reasons", "combined_p_value", "data_fingerprint",
-           "first_alarm", "pooled_tests", "recent_windows"]
+           "first_alarm", "pooled_tests", "recent_windows", "window_estimates"]
 
 # Two chains of 1000 draws: a 1 s window tested and absorbed in about 0.2 s warm on one core.
 MONITOR_SETTINGS = SamplerSettings(num_chains=2, num_draws=1000, num_burnin=500)
@@ -128,6 +128,37 @@ def data_fingerprint(data: dict) -> str:
     return h.hexdigest()
 
 
+def window_estimates(result: UpdateResult, window: SuffStats) -> list[dict]:
+    """Each drift equation's coefficients from this window alone: least squares on the
+    window's statistics over the twin's selected terms and every displacement's linear term
+    (the stiffness, followed even while it is not selected), with their standard errors from
+    the window's own residual variance. Independent from window to window (the twin's
+    posterior is not: it carries the older windows), so trends over service time are fitted
+    to these (:mod:`dtwin_jax.monitor.degradation`).
+
+    **Returns:** one ``{"state", "terms": {term: [mean, sd]}}`` per drift equation,
+    acceleration units.
+    """
+    nominal = result.nominal
+    linear = set(nominal.state_names[:nominal.d])  # the displacements q_1 .. q_d
+    out = []
+    for j, e in enumerate(e for e in result.equations if e.kind == "drift"):
+        index = [k for k, name in enumerate(e.names) if e.selected[k] or name in linear]
+        G = np.asarray(window.gram[j])[np.ix_(index, index)]
+        b = np.asarray(window.xty[j])[index]
+        n = float(np.asarray(window.n[j]))
+        try:
+            beta = np.linalg.solve(G, b)
+            cov = np.linalg.inv(G)
+        except np.linalg.LinAlgError:
+            out.append({"state": e.state, "terms": {}})
+            continue
+        resid = max(float(np.asarray(window.yty[j])) - float(b @ beta), 0.0) / max(n - len(index), 1.0)
+        sd = np.sqrt(np.maximum(np.diag(cov) * resid, 0.0))
+        out.append({"state": e.state, "terms": {e.names[k]: [float(m), float(v)] for k, m, v in zip(index, beta, sd)}})
+    return out
+
+
 def first_alarm(timeline: list[dict]) -> int | None:
     """The index of the first window with an alarm, or None."""
     return next((w["index"] for w in timeline if w.get("alarm")), None)
@@ -200,7 +231,8 @@ class Monitor:
         alarm's: :func:`combined_p_value`), ``p_window`` (this window's alone, over every drift
         equation), ``pooled`` (the window alone, then pooled with 1, 2, ... windows before
         it), ``test`` (of the window alone) (each equation's statistic, degrees of freedom and p-value),
-        ``restarted`` and ``data_sha256`` (:func:`data_fingerprint`).
+        ``restarted``, ``window_estimates`` (:func:`window_estimates`) and ``data_sha256``
+        (:func:`data_fingerprint`).
         """
         start = time.perf_counter()
         before = self.twin
@@ -238,6 +270,7 @@ class Monitor:
                       "term": e.names[int(term[j])], "z": float(z[j]), "p_term": float(p_term[j]),
                       "p_value": float(p[j])} for j, e in enumerate(drift)],
             "restarted": bool(alarm),
+            "window_estimates": window_estimates(after, window),
             "data_sha256": data_fingerprint(data),
         }
         history = list(after.history)

@@ -1,0 +1,103 @@
+"""Degradation over service time: a coefficient's trend across a monitor's windows,
+extrapolated with its uncertainty to a critical level, gives the remaining useful life.
+
+Each window's own estimate of the coefficient (``window_estimates`` in the timeline:
+least squares on that window alone, so independent from window to window) is one point
+``c_w +- s_w`` at service time ``t_w``. A straight line ``c(t) = a + b t`` is fitted by
+weighted least squares; the standard errors' common scale ``phi`` is unknown (a model that
+fits worse than its noise, or one that fits better), with a scaled-inverse-chi-square
+posterior that ``PRIOR_DOF`` pseudo-windows pull towards 1. Draws of ``(phi, a, b)`` give
+draws of the time the line reaches the critical level; the remaining life is that time less
+now (zero once past it, infinite where the line heads away from the level).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dtwin_jax.errors import DataError
+
+__all__ = ["PRIOR_DOF", "coefficient_track", "remaining_life"]
+
+# Pseudo-windows behind the prior "the windows' standard errors are right" (phi = 1).
+PRIOR_DOF = 2.0
+
+
+def coefficient_track(timeline: list[dict], term: str) -> dict:
+    """One coefficient's window-alone estimates over a monitor's timeline.
+
+    **Arguments:**
+
+    - ``timeline``: :attr:`Monitor.timeline <dtwin_jax.monitor.Monitor.timeline>` (or the
+      ``windows`` of a ``MONITOR.json``).
+    - ``term``: ``"state:term"``, like ``"x2:x1"`` (the stiffness of an SDOF, in
+      acceleration units: ``-K / M`` is the nominal's share, this the perturbation's).
+
+    **Returns:** ``t`` (the windows' ``t_start``, s), ``mean`` and ``sd`` ``(W,)`` over the
+    windows that estimated it, and ``index`` (their timeline indices).
+    """
+    state, sep, expr = term.partition(":")
+    if not sep:
+        raise DataError(f"a tracked term is 'state:term', like 'x2:x1'; got {term!r}")
+    rows = []
+    for w in timeline:
+        for e in w.get("window_estimates", []):
+            if e.get("state") == state and expr in e.get("terms", {}):
+                mean, sd = e["terms"][expr]
+                if np.isfinite(mean) and np.isfinite(sd) and sd > 0:
+                    rows.append((w["t_start"], mean, sd, w["index"]))
+    if not rows:
+        raise DataError(f"no window estimated {term!r} (terms are named as in the library, states x1..xm)")
+    t, mean, sd, index = (np.array(c) for c in zip(*rows))
+    return {"t": t.astype(float), "mean": mean.astype(float), "sd": sd.astype(float), "index": index.astype(int)}
+
+
+def remaining_life(t, mean, sd, critical: float, *, now: float | None = None, level: float = 0.9,
+                   num_draws: int = 20000, seed: int = 0) -> dict:
+    """When a coefficient's linear trend reaches ``critical``, with its uncertainty.
+
+    **Arguments:**
+
+    - ``t``, ``mean``, ``sd``: ``(W,)`` service times (s) and the window-alone estimates
+      with their standard errors (:func:`coefficient_track`); at least 3 windows.
+    - ``critical``: the level at which the structure has failed (same units).
+    - ``now``: the service time the remaining life counts from (default the last window's).
+    - ``level``: the probability of the interval (default 0.9).
+    - ``num_draws``, ``seed``: Monte Carlo draws of the trend.
+
+    **Returns:** ``failure_time`` (the draws, s; ``inf`` where the trend heads away),
+    ``median``, ``lower``, ``upper`` (the failure time's quantiles at ``(1 - level) / 2``, 0.5
+    and ``(1 + level) / 2``), ``rul_median``, ``rul_lower``, ``rul_upper`` (the same less ``now``, at least
+    0), ``slope`` and ``slope_sd`` (per s), ``scale`` (the posterior mean of ``phi``) and the
+    fitted ``line`` ``(a, b)``.
+    """
+    t, mean, sd = (np.asarray(a, dtype=float) for a in (t, mean, sd))
+    W = t.size
+    if W < 3 or mean.shape != t.shape or sd.shape != t.shape:
+        raise DataError(f"a trend needs at least 3 windows' estimates of the same shape, got {W}")
+    now = float(t[-1]) if now is None else float(now)
+    X = np.stack([np.ones(W), t - now], axis=1)  # centred at now: a is the level now
+    w = 1.0 / sd**2
+    A = X.T @ (w[:, None] * X)
+    coef = np.linalg.solve(A, X.T @ (w * mean))
+    rss = float(np.sum(w * (mean - X @ coef) ** 2))
+    dof = PRIOR_DOF + W - 2
+    rng = np.random.default_rng(seed)
+    phi = (PRIOR_DOF + rss) / rng.chisquare(dof, num_draws)  # scaled-inverse-chi-square draws
+    L = np.linalg.cholesky(np.linalg.inv(A))
+    line = coef + np.sqrt(phi)[:, None] * (rng.standard_normal((num_draws, 2)) @ L.T)
+    a, b = line[:, 0], line[:, 1]
+    healthy = np.sign(critical - mean[0])  # the side of the level the structure started on
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ahead = (critical - a) / b  # time from now to the crossing
+    ahead = np.where(np.isfinite(ahead) & (ahead > 0), ahead, np.inf)  # heading away: never
+    ahead = np.where((critical - a) * healthy <= 0, 0.0, ahead)  # past the level already: failed
+    failure = now + ahead
+    if not 0.0 < level < 1.0:
+        raise DataError(f"the interval's level must be in (0, 1), got {level:g}")
+    q = np.quantile(failure, [(1 - level) / 2, 0.5, (1 + level) / 2], method="inverted_cdf")  # no interpolation: inf stays inf
+    return {"failure_time": failure, "lower": float(q[0]), "median": float(q[1]), "upper": float(q[2]),
+            "rul_lower": float(max(q[0] - now, 0.0)), "rul_median": float(max(q[1] - now, 0.0)),
+            "rul_upper": float(max(q[2] - now, 0.0)), "slope": float(coef[1]),
+            "slope_sd": float(np.sqrt(np.mean(phi) * np.linalg.inv(A)[1, 1])), "scale": float(np.mean(phi)),
+            "line": (float(coef[0]), float(coef[1])), "now": now, "critical": float(critical)}
