@@ -138,6 +138,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="chance that a window that follows the twin raises an alarm (default 0.001)")
     mo.add_argument("--forget", type=float, default=0.9,
                     help="weight of the older windows' data at each update, in [0, 1] (default 0.9)")
+    mo.add_argument("--track", default=None, metavar="STATE:TERM",
+                    help="follow this coefficient's trend (for example x2:x1, an SDOF's stiffness) to --critical: "
+                         "MONITOR.json gets its remaining life")
+    mo.add_argument("--critical", type=float, default=None, help="the tracked coefficient's failure level")
     _add_sampler_args(mo, draws=1000, burn_in=500, chains=2)
 
     demo = sub.add_parser("demo", help="simulate a paper example, update its twin, print and save results")
@@ -387,6 +391,10 @@ def _check_monitor_args(args) -> None:
         raise DataError(f"--false-alarm must be in (0, 1), got {args.false_alarm:g}")
     if not 0.0 <= args.forget <= 1.0:
         raise DataError(f"--forget must be in [0, 1], got {args.forget:g}")
+    if (args.track is None) != (args.critical is None):
+        raise DataError("--track and --critical go together (a coefficient and its failure level)")
+    if args.critical is not None and not abs(args.critical) < float("inf"):
+        raise DataError(f"--critical must be a finite number, got {args.critical:g}")
     _check_threshold(args.pip_threshold)
     for out in (args.out, args.csv, args.plot):
         if out:
@@ -427,12 +435,23 @@ def _monitor(args) -> int:
                 save_twin(mon.twin, args.twin)
                 write_timeline(args.out, mon.timeline, csv_path=args.csv, **settings)
     timeline = mon.timeline
+    remaining = None
+    if args.track:
+        from dtwin_jax.monitor.degradation import coefficient_track, remaining_life
+
+        track = coefficient_track(timeline, args.track)
+        rul = remaining_life(track["t"], track["mean"], track["sd"], args.critical)
+        remaining = (args.track, track, rul)
+        settings["remaining_life"] = {"term": args.track, **{k: v for k, v in rul.items() if k != "failure_time"},
+                                      "windows": len(track["t"])}
+        print(f"{args.track}: reaches {args.critical:g} at t = {rul['median']:.4g} s (90% interval {rul['lower']:.4g} "
+              f"to {rul['upper']:.4g} s), {rul['rul_median']:.4g} s from now")
     with _uninterrupted():
         write_timeline(args.out, timeline, csv_path=args.csv, **settings)
         if args.plot:
             from dtwin_jax.plots import plot_monitor
 
-            plot_monitor(timeline, args.plot, false_alarm=args.false_alarm)
+            plot_monitor(timeline, args.plot, false_alarm=args.false_alarm, remaining=remaining)
     first = next((w["index"] for w in timeline if w["alarm"]), None)
     print(f"{len(timeline)} windows in the timeline; first alarm: {'none' if first is None else f'window {first}'}")
     return 0

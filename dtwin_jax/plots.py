@@ -147,11 +147,13 @@ def plot_degradation(forecast, truth=None, path=None):
 MONITOR_PANELS = 6
 
 
-def plot_monitor(timeline, path=None, *, false_alarm=None):
+def plot_monitor(timeline, path=None, *, false_alarm=None, remaining=None):
     """A monitor's timeline (:class:`~dtwin_jax.monitor.Monitor`): each window's p-value
     against the false-alarm rate, the PIPs of every term ever selected, and the coefficients
     of the terms selected longest, with their 95% interval, over service time; alarms are
-    red vertical lines. Written to ``path`` (PNG) when given."""
+    red vertical lines. ``remaining``: ``(term, track, rul)`` of
+    :mod:`dtwin_jax.monitor.degradation` adds a last panel, the tracked coefficient's window
+    estimates, its trend and the failure time's interval. Written to ``path`` (PNG) when given."""
     from dtwin_jax.monitor.timeline import ever_selected
 
     ts = np.array([w["t_start"] for w in timeline], dtype=float)
@@ -162,8 +164,12 @@ def plot_monitor(timeline, path=None, *, false_alarm=None):
     terms = ever_selected(timeline)
     rows = {term: _monitor_rows(timeline, term) for term in terms}
     longest = sorted(terms, key=lambda term: -np.sum(np.isfinite(rows[term][1])))[:MONITOR_PANELS]
-    fig = _figure((10, 2.2 * (2 + len(longest))))
-    axes = fig.subplots(2 + len(longest), 1, squeeze=False, sharex=True)[:, 0]
+    extra = remaining is not None
+    fig = _figure((10, 2.2 * (2 + len(longest) + extra)))
+    axes = fig.subplots(2 + len(longest) + extra, 1, squeeze=False, sharex=not extra)[:, 0]
+    if extra:
+        _remaining_panel(axes[-1], *remaining)
+        axes = axes[:-1]
     p = np.array([w["p_value"] for w in timeline], dtype=float)
     axes[0].semilogy(ts, np.maximum(p, 1e-300), "o-", color="k", ms=3, lw=0.8, label="window p-value")
     if false_alarm is not None:
@@ -187,6 +193,25 @@ def plot_monitor(timeline, path=None, *, false_alarm=None):
     axes[-1].set_xlabel(xlabel)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def _remaining_panel(ax, term, track, rul):
+    """The tracked coefficient's window estimates (+-2 sd), its fitted line to the critical
+    level and the failure time's interval."""
+    t = np.asarray(track["t"])
+    ax.errorbar(t, track["mean"], yerr=2 * np.asarray(track["sd"]), fmt="o", ms=3, color="k", lw=0.8,
+                label="window estimate (+-2 sd)")
+    end = rul["upper"] if np.isfinite(rul["upper"]) else t[-1] + 2 * (t[-1] - t[0])
+    tt = np.linspace(t[0], max(end, t[-1]), 200)
+    a, b = rul["line"]
+    ax.plot(tt, a + b * (tt - rul["now"]), color="tab:blue", lw=1, label="trend")
+    ax.axhline(rul["critical"], color="tab:red", ls="--", lw=1, label="critical level")
+    if np.isfinite(rul["lower"]):
+        ax.axvspan(rul["lower"], end, color="tab:orange", alpha=0.25, lw=0, label="failure time (90% interval)")
+    ax.axvline(rul["median"], color="tab:orange", lw=1)
+    ax.set_xlabel("service time (s)")
+    ax.set_ylabel(f"{term}\n(acceleration units)", fontsize=8)
+    ax.legend(loc="lower left", bbox_to_anchor=(0.0, 1.02), fontsize=8, ncol=4, frameon=False)
 
 
 def _term_label(term) -> str:

@@ -156,8 +156,11 @@ def test_a_resumed_monitor_has_the_history_of_an_uninterrupted_one(files, monkey
     shutil.copytree(tmp / "twin", tmp / "again")
     windows = [str(tmp / f"w{i}.npz") for i in range(1, 5)]
     assert main(["monitor", str(tmp / "twin"), *windows, "--out", str(tmp / "m.json"), "--csv",
-                 str(tmp / "m.csv"), "--plot", str(tmp / "m.png")] + FAST) == 0
+                 str(tmp / "m.csv"), "--plot", str(tmp / "m.png"), "--track", "x2:x1", "--critical", "100"] + FAST) == 0
     full = json.loads((tmp / "m.json").read_text())
+    rul = full.pop("remaining_life")
+    assert rul["term"] == "x2:x1" and rul["windows"] == 4 and rul["critical"] == 100.0
+    assert rul["lower"] <= rul["median"] <= rul["upper"] and rul["now"] == 4.0
     assert full["first_alarm"] == 1 and [w["alarm"] for w in full["windows"]] == [False, True, False, True]
     assert (tmp / "m.png").stat().st_size > 10_000 and len((tmp / "m.csv").read_text().splitlines()) == 5
     # Killed after the third window's twin was saved, before its timeline was written.
@@ -182,6 +185,7 @@ def test_a_resumed_monitor_has_the_history_of_an_uninterrupted_one(files, monkey
     out = capsys.readouterr().out
     assert out.count("already in the timeline; skipped") == 3
     resumed = json.loads((tmp / "r.json").read_text())
+    assert "remaining_life" not in resumed
     assert _without_clocks(resumed["windows"]) == _without_clocks(full["windows"])
     a, b = load_twin(tmp / "twin"), load_twin(tmp / "again")
     for ea, eb in zip(a.equations, b.equations):
@@ -212,6 +216,7 @@ def test_windows_cut_from_a_record_are_the_files_windows(files):
     ("false-alarm", "--false-alarm must be in (0, 1), got 2"),
     ("short-window", "--window 0.001 s is 1 samples"),
     ("nan", "bad.npz': 'x' contains NaN or infinite values"),
+    ("track", "--track and --critical go together"),
 ])
 def test_monitor_errors_are_one_line_and_keep_what_was_done(files, case, message, capsys):
     tmp = files
@@ -220,7 +225,8 @@ def test_monitor_errors_are_one_line_and_keep_what_was_done(files, case, message
             "no-window": [str(tmp / "twin"), "--record", str(tmp / "record.npz")],
             "not-a-twin": [str(tmp), *w],
             "false-alarm": [str(tmp / "twin"), *w, "--false-alarm", "2"],
-            "short-window": [str(tmp / "twin"), "--record", str(tmp / "record.npz"), "--window", "0.001"]}
+            "short-window": [str(tmp / "twin"), "--record", str(tmp / "record.npz"), "--window", "0.001"],
+            "track": [str(tmp / "twin"), *w, "--track", "x2:x1"]}
     if case == "nan":
         bad = dict(np.load(tmp / "w2.npz"))
         bad["x"][10, 0] = np.nan
