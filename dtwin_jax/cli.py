@@ -373,6 +373,9 @@ def _monitor_windows(args):
     if not 3 <= n <= t.size:
         raise DataError(f"--window {args.window:g} s is {n} samples of '{args.record}', which holds {t.size}: "
                         "give at least 3 and at most the record")
+    left = t.size % n
+    if left:
+        print(f"{args.record}: the last {left} samples are shorter than a window and are left out")
     for start in range(0, t.size - n + 1, n):
         sl = slice(start, start + n)
         window = {k: v[sl] if k == "t" or (k == "reference" and v.ndim == 1) else v[..., sl, :]

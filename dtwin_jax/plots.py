@@ -166,10 +166,9 @@ def plot_monitor(timeline, path=None, *, false_alarm=None, remaining=None):
     longest = sorted(terms, key=lambda term: -np.sum(np.isfinite(rows[term][1])))[:MONITOR_PANELS]
     extra = remaining is not None
     fig = _figure((10, 2.2 * (2 + len(longest) + extra)))
-    axes = fig.subplots(2 + len(longest) + extra, 1, squeeze=False, sharex=not extra)[:, 0]
+    axes = fig.subplots(2 + len(longest) + extra, 1, squeeze=False, sharex=True)[:, 0]
     if extra:
         _remaining_panel(axes[-1], *remaining)
-        axes = axes[:-1]
     p = np.array([w["p_value"] for w in timeline], dtype=float)
     axes[0].semilogy(ts, np.maximum(p, 1e-300), "o-", color="k", ms=3, lw=0.8, label="window p-value")
     if false_alarm is not None:
@@ -182,12 +181,12 @@ def plot_monitor(timeline, path=None, *, false_alarm=None, remaining=None):
     axes[1].set_ylabel("PIP (-)")
     if terms:
         axes[1].legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=7, frameon=False)
-    for ax, term in zip(axes[2:], longest):
+    for ax, term in zip(axes[2:2 + len(longest)], longest):
         _, mean, lower, upper = rows[term]
         ax.fill_between(ts, lower, upper, color="tab:blue", alpha=0.3, lw=0, label="95% interval")
         ax.plot(ts, mean, "o-", color="tab:blue", ms=2.5, lw=0.8, label="posterior mean")
         ax.set_ylabel(f"{_term_label(term)}\n(acceleration units)", fontsize=8)
-    for ax in axes:
+    for ax in axes[:2 + len(longest)]:
         for t_alarm in ts[[bool(w["alarm"]) for w in timeline]]:
             ax.axvline(t_alarm, color="tab:red", lw=0.8, alpha=0.7)
     axes[-1].set_xlabel(xlabel)
@@ -209,7 +208,6 @@ def _remaining_panel(ax, term, track, rul):
     if np.isfinite(rul["lower"]):
         ax.axvspan(rul["lower"], end, color="tab:orange", alpha=0.25, lw=0, label="failure time (90% interval)")
     ax.axvline(rul["median"], color="tab:orange", lw=1)
-    ax.set_xlabel("service time (s)")
     ax.set_ylabel(f"{term}\n(acceleration units)", fontsize=8)
     ax.legend(loc="lower left", bbox_to_anchor=(0.0, 1.02), fontsize=8, ncol=4, frameon=False)
 

@@ -16,6 +16,8 @@ A twin folder ``TWIN_DIR`` holds, format version 2:
     ``posterior``: ``theta_<state>_<kind>``, ``gamma_...``, ``sigma2_...``);
   * ``statistics.npz``: the sufficient statistics the sampler saw (``<kind>_gram``,
     ``_xty``, ``_yty``, ``_n``), so that a re-update can use the posterior as its prior;
+    a monitored twin (:mod:`dtwin_jax.monitor`) also its last windows' statistics and its
+    belief before each (``recent_windows_*``, ``recent_beliefs_*``, a leading axis of 1-4);
   * ``result.json``: the result file of formats.md for the last update;
 
 * ``.lock``: the lock file (never deleted).
