@@ -15,7 +15,6 @@ twice (a killed monitor resumes where it stopped, with the history it would have
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import time
 
 import numpy as np
@@ -25,6 +24,7 @@ from dtwin_jax.io.twin_files import MAX_RECENT, RECENT_KINDS
 from dtwin_jax.monitor.change import Belief, belief, window_statistics, window_test
 from dtwin_jax.sampler import SuffStats
 from dtwin_jax.update.from_data import update_from_data
+from dtwin_jax.update.lifecycle import arrays_sha256
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 
 __all__ = ["LOOKBACK", "MONITOR_SETTINGS", "Monitor", "alarm_reasons", "combined_p_value", "data_fingerprint",
@@ -112,20 +112,10 @@ def alarm_reasons(before: UpdateResult, after: UpdateResult) -> tuple[list[str],
 
 
 def data_fingerprint(data: dict) -> str:
-    """SHA-256 (hex) of a window as read: ``t``, ``x``, ``u``, ``xdot`` as float64 bytes with
-    their shapes, and the sensor names."""
-    h = hashlib.sha256()
-    for key in ("t", "x", "u", "xdot"):
-        a = data.get(key)
-        if a is None:
-            h.update(f"{key}:none;".encode())
-            continue
-        a = np.ascontiguousarray(a, dtype=np.float64)
-        h.update(f"{key}:{a.shape};".encode())
-        h.update(a.tobytes())
-    for key in ("x_names", "xdot_names"):
-        h.update(f"{key}:{data.get(key)!r};".encode())
-    return h.hexdigest()
+    """SHA-256 (hex) of a window as read: ``t``, ``x``, ``u``, ``xdot`` and the sensor names
+    (:func:`~dtwin_jax.update.lifecycle.arrays_sha256`)."""
+    names = "".join(f"{key}:{data.get(key)!r};" for key in ("x_names", "xdot_names"))
+    return arrays_sha256({key: data.get(key) for key in ("t", "x", "u", "xdot")}, names)
 
 
 def window_estimates(result: UpdateResult, window: SuffStats) -> list[dict]:

@@ -18,7 +18,7 @@ from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library
 from dtwin_jax.models.systems import LinearSecondOrder
 
-__all__ = ["check_previous", "check_repeat", "window_fingerprint", "with_previous", "updated_history"]
+__all__ = ["arrays_sha256", "check_previous", "check_repeat", "window_fingerprint", "with_previous", "updated_history"]
 
 
 def with_previous(stats: sampler.SuffStats, kind: str, previous, forget: float) -> sampler.SuffStats:
@@ -52,19 +52,24 @@ def check_previous(previous, mode: str, nominal: LinearSecondOrder, lib: Library
         raise DataError("re-update needs the previous update's nominal model")
 
 
-def window_fingerprint(rec: Records) -> str:
-    """SHA-256 (hex) of a window's ``t``, ``x``, ``u`` and ``xdot`` as float64 bytes with their
-    shapes (an absent array counts as such): equal for the same data read again."""
+def arrays_sha256(arrays: dict, extra: str = "") -> str:
+    """SHA-256 (hex) of named arrays as float64 bytes with their shapes (None counts as
+    absent), then ``extra``: equal for the same data read again."""
     h = hashlib.sha256()
-    for name in ("t", "x", "u", "xdot"):
-        a = getattr(rec, name)
+    for name, a in arrays.items():
         if a is None:
             h.update(f"{name}:none;".encode())
             continue
         a = np.ascontiguousarray(a, dtype=np.float64)
         h.update(f"{name}:{a.shape};".encode())
         h.update(a.tobytes())
+    h.update(extra.encode())
     return h.hexdigest()
+
+
+def window_fingerprint(rec: Records) -> str:
+    """SHA-256 (hex) of a window's ``t``, ``x``, ``u`` and ``xdot`` (:func:`arrays_sha256`)."""
+    return arrays_sha256({name: getattr(rec, name) for name in ("t", "x", "u", "xdot")})
 
 
 def check_repeat(previous, rec: Records, allow_repeat: bool = False) -> None:
