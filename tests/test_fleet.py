@@ -73,4 +73,4 @@ def test_sharded_over_eight_devices_equals_one_device(fleet, tmp_path):
 def _names(run):
     state, report = run
     return ["mean", "cov", "sigma2", "gram", "xty", "yty", "n", "rgram", "rxty", "ryty", "rn", "rmean", "rcov",
-            "rsigma2", "count", "fresh", *report._fields]
+            "rsigma2", "count", "ratio_sum", "ratio_count", "fresh", *report._fields]

@@ -11,6 +11,12 @@ term, a lost one or a coefficient that moved adds `G delta` to `g`: `T` grows wi
 window's information about the change. Columns are scaled to unit diagonal first, so the
 rank does not depend on their units.
 
+Real windows' rows are not independent (smoothed states; a model that misses part of the
+physics the same way in every window), so `V` understates the score's spread by a factor
+that each structure's own windows measure: `T / df` averages 1 over windows that follow the
+twin when `V` is right. :func:`overdispersion` estimates it (at least 1) and the tests use
+`V` times it.
+
 A change that one term carries (a new term, a stiffness that moved) is seen with fewer
 windows by the score of each term alone, `z_k = g_k / sqrt(V_kk)`, standard normal under
 the same hypothesis: the largest `|z_k|` is tested with a Bonferroni factor `K`. The
@@ -29,10 +35,12 @@ import numpy as np
 
 from dtwin_jax.sampler import SuffStats
 
-__all__ = ["Belief", "ChangeTest", "belief", "window_test", "window_statistics"]
+__all__ = ["PRIOR_WINDOWS", "Belief", "ChangeTest", "belief", "overdispersion", "window_test", "window_statistics"]
 
 # Eigenvalues of the scaled V below this fraction of the largest are its null space.
 _RANK_TOL = 1e-9
+# Pseudo-windows behind "the rows are independent" (overdispersion 1).
+PRIOR_WINDOWS = 5.0
 
 
 class Belief(NamedTuple):
@@ -84,12 +92,12 @@ def window_statistics(after, before, forget: float) -> SuffStats:
     return SuffStats(*(np.asarray(a, dtype=float) - forget * np.asarray(b, dtype=float) for a, b in zip(new, old)))
 
 
-def _one(mean, cov, sigma2, gram, xty):
+def _one(mean, cov, sigma2, gram, xty, dispersion):
     scale = 1.0 / jnp.sqrt(jnp.maximum(jnp.diag(gram), jnp.finfo(gram.dtype).tiny))
     G = scale[:, None] * gram * scale[None, :]
     g = scale * (xty - gram @ mean)
     S = cov / (scale[:, None] * scale[None, :])
-    V = sigma2 * G + G @ S @ G
+    V = dispersion * (sigma2 * G + G @ S @ G)
     w, U = jnp.linalg.eigh(0.5 * (V + V.T))
     keep = w > _RANK_TOL * jnp.max(w)
     z = jnp.where(keep, U.T @ g, 0.0) / jnp.sqrt(jnp.where(keep, w, 1.0))
@@ -103,8 +111,18 @@ def _one(mean, cov, sigma2, gram, xty):
     return T, df, p_all, k, zk[k], p_term, jnp.minimum(1.0, 2.0 * jnp.minimum(p_all, p_term))
 
 
+def overdispersion(ratio_sum, count):
+    """The factor on `V` that a structure's own windows call for: the mean of `T / df` over
+    its windows that followed the twin, with :data:`PRIOR_WINDOWS` pseudo-windows at 1, and at
+    least 1. Rows that are not independent (smoothed states, a model that misses part of
+    the physics in the same way window after window) spread the score more than `V` says;
+    `T / df` has mean 1 where they do not. `ratio_sum`, `count`: `(q,)` sums of `T / df`
+    (unscaled) and their number."""
+    return jnp.maximum(1.0, (PRIOR_WINDOWS + jnp.asarray(ratio_sum)) / (PRIOR_WINDOWS + jnp.asarray(count)))
+
+
 @jax.jit
-def window_test(prior: Belief, window: SuffStats) -> ChangeTest:
+def window_test(prior: Belief, window: SuffStats, dispersion=1.0) -> ChangeTest:
     """The score test of a window's drift statistics against the twin before it.
 
     **Arguments:**
@@ -112,9 +130,13 @@ def window_test(prior: Belief, window: SuffStats) -> ChangeTest:
     - `prior`: the twin's :class:`Belief` before the window.
     - `window`: the window's own statistics, batched over the same `q` equations
       (`gram (q, K, K)`, `xty (q, K)`; `yty`, `n` unused).
+    - `dispersion`: `()` or `(q,)`, the factor on `V` (:func:`overdispersion`); the returned
+      `statistic` is `T` divided by it.
 
     **Returns:** a :class:`ChangeTest`; under "the window follows the twin" `p_all` is
     uniform on (0, 1), and `p_term` and `p_value` are at least as large as a uniform.
     """
+    q = prior.sigma2.shape[0]
+    dispersion = jnp.broadcast_to(jnp.asarray(dispersion, jnp.float64), (q,))
     return ChangeTest(*jax.vmap(_one)(prior.mean, prior.cov, prior.sigma2, jnp.asarray(window.gram),
-                                      jnp.asarray(window.xty)))
+                                      jnp.asarray(window.xty), dispersion))

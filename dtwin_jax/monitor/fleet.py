@@ -24,7 +24,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from dtwin_jax.input_output.targets import input_output_stats
 from dtwin_jax.library import Library
-from dtwin_jax.monitor.change import Belief, window_test
+from dtwin_jax.monitor.change import Belief, overdispersion, window_test
 from dtwin_jax.monitor.service import LOOKBACK
 from dtwin_jax.sampler import SamplerSettings, SuffStats, sample
 
@@ -41,6 +41,8 @@ class FleetState(NamedTuple):
     recent_windows: SuffStats  # (F, P, q, ...): the last windows' statistics, newest first
     recent_beliefs: Belief  # (F, P, q, ...): the twin's belief before each of them
     recent_count: jax.Array  # (F,) int: how many of them count (since the last restart)
+    ratio_sum: jax.Array  # (F, q) sum of T / df over the windows without an alarm (overdispersion)
+    ratio_count: jax.Array  # (F, q) their number
     fresh: jax.Array  # (F,) bool: no twin yet (the next window is its baseline, untested)
 
 
@@ -66,20 +68,22 @@ def fleet_init(num_structures: int, num_equations: int, num_terms: int) -> Fleet
                       jnp.ones(lead + (q,), jnp.float64))
 
     return FleetState(belief(F), stats(F), stats(F, P), belief(F, P), jnp.zeros((F,), jnp.int32),
-                      jnp.ones((F,), bool))
+                      jnp.zeros((F, q), jnp.float64), jnp.zeros((F, q), jnp.float64), jnp.ones((F,), bool))
 
 
-def _alarm_p(st: FleetState, belief: Belief, window: SuffStats):
+def _alarm_p(st: FleetState, belief: Belief, window: SuffStats, dispersion):
     """:func:`~dtwin_jax.monitor.service.combined_p_value` of the pooled tests of one
-    structure (:func:`~dtwin_jax.monitor.service.pooled_tests`), jittable: ``(p, p_window)``."""
+    structure (:func:`~dtwin_jax.monitor.service.pooled_tests`), jittable: ``(p, p_window,
+    the window's own unscaled T / df (q,))``."""
     cums = jax.tree.map(lambda w, r: jnp.concatenate([w[None], w[None] + jnp.cumsum(r, axis=0)]), window,
                         st.recent_windows)
     priors = jax.tree.map(lambda b, r: jnp.concatenate([b[None], r]), belief, st.recent_beliefs)
-    tests = jax.vmap(window_test)(priors, cums)
+    tests = jax.vmap(window_test, in_axes=(0, 0, None))(priors, cums, dispersion)
     q = tests.p_value.shape[-1]
     p = jnp.minimum(1.0, jnp.min(tests.p_value, axis=-1) * q)  # (P + 1,)
     valid = jnp.arange(p.size) <= st.recent_count
-    return jnp.minimum(1.0, jnp.min(jnp.where(valid, p, jnp.inf)) * jnp.sum(valid)), p[0]
+    ratio = tests.statistic[0] * dispersion / jnp.maximum(tests.df[0], 1)
+    return jnp.minimum(1.0, jnp.min(jnp.where(valid, p, jnp.inf)) * jnp.sum(valid)), p[0], ratio
 
 
 def _belief(trace) -> Belief:
@@ -113,7 +117,7 @@ def fleet_step(state: FleetState, x, u, xdot, nominal, keys, *, lib: Library, dt
     def one(st: FleetState, x, u, xdot, nominal, key):
         window = input_output_stats(nominal, lib, dt, x, u, xdot, half_width)
         q = window.n.shape[0]
-        p_value, p_window = _alarm_p(st, st.belief, window)
+        p_value, p_window, ratio = _alarm_p(st, st.belief, window, overdispersion(st.ratio_sum, st.ratio_count))
         p_value, p_window = jnp.where(st.fresh, 1.0, p_value), jnp.where(st.fresh, 1.0, p_window)
         alarm = (p_value < false_alarm) & ~st.fresh
         restart = alarm | st.fresh
@@ -123,8 +127,10 @@ def fleet_step(state: FleetState, x, u, xdot, nominal, keys, *, lib: Library, dt
         windows = jax.tree.map(lambda w, r: jnp.concatenate([w[None], r[:-1]]), window, st.recent_windows)
         beliefs = jax.tree.map(lambda b, r: jnp.concatenate([b[None], r[:-1]]), st.belief, st.recent_beliefs)
         count = jnp.where(restart, 0, jnp.minimum(st.recent_count + 1, LOOKBACK - 1))
+        calm = ~restart  # a tested window without an alarm: its T / df joins the dispersion's
         pip = trace.gamma.mean(axis=(1, 2))
-        return (FleetState(belief, stats, windows, beliefs, count, jnp.zeros((), bool)),
+        return (FleetState(belief, stats, windows, beliefs, count, st.ratio_sum + jnp.where(calm, ratio, 0.0),
+                           st.ratio_count + calm, jnp.zeros((), bool)),
                 FleetReport(alarm, p_value, p_window, pip, belief.mean))
 
     return jax.vmap(one)(state, x, u, xdot, nominal, keys)

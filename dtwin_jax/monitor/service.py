@@ -21,14 +21,20 @@ import numpy as np
 
 from dtwin_jax.errors import DataError
 from dtwin_jax.io.twin_files import MAX_RECENT, RECENT_KINDS
-from dtwin_jax.monitor.change import Belief, belief, window_statistics, window_test
+from dtwin_jax.monitor.change import (
+    Belief,
+    belief,
+    overdispersion,
+    window_statistics,
+    window_test,
+)
 from dtwin_jax.sampler import SuffStats
 from dtwin_jax.update.from_data import update_from_data
 from dtwin_jax.update.lifecycle import arrays_sha256
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 
 __all__ = ["LOOKBACK", "MONITOR_SETTINGS", "Monitor", "alarm_reasons", "combined_p_value", "data_fingerprint",
-           "first_alarm", "pooled_tests", "recent_windows", "window_estimates"]
+           "first_alarm", "pooled_tests", "recent_windows", "timeline_dispersion", "window_estimates"]
 
 # Two chains of 1000 draws: a 1 s window tested and absorbed in about 0.2 s warm on one core.
 MONITOR_SETTINGS = SamplerSettings(num_chains=2, num_draws=1000, num_burnin=500)
@@ -65,15 +71,31 @@ def _with_recent(statistics: dict, recent: list[tuple[SuffStats, Belief]]) -> di
     return out
 
 
-def pooled_tests(prior: Belief, window: SuffStats, recent: list[tuple[SuffStats, Belief]]) -> list:
+def pooled_tests(prior: Belief, window: SuffStats, recent: list[tuple[SuffStats, Belief]], dispersion=1.0) -> list:
     """The window against ``prior`` (the twin before it), then the window pooled with the
     ``1 .. len(recent)`` windows before it against the twin before the oldest of those:
-    one :class:`~dtwin_jax.monitor.change.ChangeTest` each."""
-    tests, pooled = [window_test(prior, window)], window
+    one :class:`~dtwin_jax.monitor.change.ChangeTest` each, with ``dispersion``
+    (:func:`~dtwin_jax.monitor.change.overdispersion`)."""
+    tests, pooled = [window_test(prior, window, dispersion)], window
     for w, b in recent:
         pooled = SuffStats(*(np.asarray(x) + np.asarray(y) for x, y in zip(pooled, w)))
-        tests.append(window_test(b, pooled))
+        tests.append(window_test(b, pooled, dispersion))
     return tests
+
+
+def timeline_dispersion(timeline: list[dict], num_equations: int) -> np.ndarray:
+    """:func:`~dtwin_jax.monitor.change.overdispersion` of each drift equation from the
+    timeline's windows without an alarm (their unscaled ``T / df``)."""
+    total, count = np.zeros(num_equations), np.zeros(num_equations)
+    for w in timeline:
+        tests = w.get("test")
+        if w.get("alarm") or not isinstance(tests, list) or len(tests) != num_equations:
+            continue
+        for j, t in enumerate(tests):
+            if t.get("df", 0) > 0:
+                total[j] += t["statistic"] * t.get("dispersion", 1.0) / t["df"]
+                count[j] += 1
+    return np.asarray(overdispersion(total, count))
 
 
 def combined_p_value(tests) -> tuple[float, float]:
@@ -230,7 +252,8 @@ class Monitor:
         after = self._update(data, source, before, seed)
         prior, window = belief(before), window_statistics(after, before, self.forget)
         recent = recent_windows(before)
-        tests = pooled_tests(prior, window, recent)
+        dispersion = timeline_dispersion(self.timeline, int(np.shape(prior.sigma2)[0]))
+        tests = pooled_tests(prior, window, recent, dispersion)
         p_combined, p_window = combined_p_value(tests)
         stat, df, p_all, term, z, p_term, p = (np.asarray(a) for a in tests[0])
         alarm = p_combined < self.false_alarm
@@ -256,7 +279,8 @@ class Monitor:
             "p_value": p_combined,
             "p_window": p_window,
             "pooled": [float(min(1.0, np.min(np.asarray(t.p_value)) * np.size(t.p_value))) for t in tests],
-            "test": [{"state": e.state, "statistic": float(stat[j]), "df": int(df[j]), "p_all": float(p_all[j]),
+            "test": [{"state": e.state, "statistic": float(stat[j]), "df": int(df[j]),
+                      "dispersion": float(dispersion[j]), "p_all": float(p_all[j]),
                       "term": e.names[int(term[j])], "z": float(z[j]), "p_term": float(p_term[j]),
                       "p_value": float(p[j])} for j, e in enumerate(drift)],
             "restarted": bool(alarm),
