@@ -415,7 +415,7 @@ def _monitor(args) -> int:
     _check_early(args, sizes, library)
     from dtwin_jax.io.store import load_twin, save_twin
     from dtwin_jax.io.twin_folder import locked
-    from dtwin_jax.monitor import Monitor
+    from dtwin_jax.monitor import Monitor, first_alarm
     from dtwin_jax.monitor.timeline import write_timeline
 
     settings = {"false_alarm": args.false_alarm, "forget": args.forget}
@@ -455,7 +455,7 @@ def _monitor(args) -> int:
             from dtwin_jax.plots import plot_monitor
 
             plot_monitor(timeline, args.plot, false_alarm=args.false_alarm, remaining=remaining)
-    first = next((w["index"] for w in timeline if w["alarm"]), None)
+    first = first_alarm(timeline)
     print(f"{len(timeline)} windows in the timeline; first alarm: {'none' if first is None else f'window {first}'}")
     return 0
 

@@ -34,6 +34,11 @@ class _Scaled:
         return params["scale"] * self.inner(x, u, params["inner"])
 
 
+def _nothing(x, u, params):
+    """No perturbation (a linear example): one function, so one compiled simulation."""
+    return jnp.zeros_like(x)
+
+
 def _system(example: systems.Example, scale: float, stiffness: float) -> systems.PerturbedSystem:
     nominal = example.system.nominal
     nominal = eqx.tree_at(lambda n: n.K, nominal, stiffness * nominal.K)
@@ -41,7 +46,7 @@ def _system(example: systems.Example, scale: float, stiffness: float) -> systems
     if isinstance(inner, systems.PerturbedSystem):
         return systems.PerturbedSystem(nominal, _Scaled(inner.perturbation),
                                        {"scale": jnp.asarray(scale, float), "inner": inner.params})
-    return systems.PerturbedSystem(nominal, _Scaled(lambda x, u, p: jnp.zeros_like(x)),
+    return systems.PerturbedSystem(nominal, _Scaled(_nothing),
                                    {"scale": jnp.asarray(scale, float), "inner": {}})
 
 

@@ -252,7 +252,8 @@ class Monitor:
         after = self._update(data, source, before, seed)
         prior, window = belief(before), window_statistics(after, before, self.forget)
         recent = recent_windows(before)
-        dispersion = timeline_dispersion(self.timeline, int(np.shape(prior.sigma2)[0]))
+        timeline = self.timeline
+        dispersion = timeline_dispersion(timeline, int(np.shape(prior.sigma2)[0]))
         tests = pooled_tests(prior, window, recent, dispersion)
         p_combined, p_window = combined_p_value(tests)
         stat, df, p_all, term, z, p_term, p = (np.asarray(a) for a in tests[0])
@@ -267,7 +268,7 @@ class Monitor:
         after = dataclasses.replace(after, statistics=_with_recent(after.statistics, recent))
         drift = [e for e in before.equations if e.kind == "drift"]
         record = {
-            "index": len(self.timeline),
+            "index": len(timeline),
             "source": str(source),
             "t_start": float(np.asarray(data["t"]).reshape(-1)[0] if t_start is None else t_start),
             "alarm": bool(alarm),
