@@ -98,10 +98,15 @@ def timeline_dispersion(timeline: list[dict], num_equations: int) -> np.ndarray:
     return np.asarray(overdispersion(total, count))
 
 
+def test_p_value(test) -> float:
+    """One test's p-value over every equation: the smallest times their number (Bonferroni)."""
+    return float(min(1.0, np.min(np.asarray(test.p_value)) * np.size(test.p_value)))
+
+
 def combined_p_value(tests) -> tuple[float, float]:
-    """``(p for the alarm, the window's alone)``: each test's smallest equation p-value times
-    the equations (Bonferroni), and the smallest over the tests times their number."""
-    p = [float(min(1.0, np.min(np.asarray(t.p_value)) * np.size(t.p_value))) for t in tests]
+    """``(p for the alarm, the window's alone)``: each test's :func:`test_p_value`, and the
+    smallest over the tests times their number."""
+    p = [test_p_value(t) for t in tests]
     return float(min(1.0, min(p) * len(p))), p[0]
 
 
@@ -242,7 +247,7 @@ class Monitor:
         ``dropped_terms``, ``changed_terms``, ``seconds``, ``equations``, and ``p_value`` (the
         alarm's: :func:`combined_p_value`), ``p_window`` (this window's alone, over every drift
         equation), ``pooled`` (the window alone, then pooled with 1, 2, ... windows before
-        it), ``test`` (of the window alone) (each equation's statistic, degrees of freedom and p-value),
+        it), ``test`` (the window alone: each equation's statistic, degrees of freedom and p-values),
         ``restarted``, ``window_estimates`` (:func:`window_estimates`) and ``data_sha256``
         (:func:`data_fingerprint`).
         """
@@ -279,7 +284,7 @@ class Monitor:
             "equations": [e.to_json() for e in after.equations],
             "p_value": p_combined,
             "p_window": p_window,
-            "pooled": [float(min(1.0, np.min(np.asarray(t.p_value)) * np.size(t.p_value))) for t in tests],
+            "pooled": [test_p_value(t) for t in tests],
             "test": [{"state": e.state, "statistic": float(stat[j]), "df": int(df[j]),
                       "dispersion": float(dispersion[j]), "p_all": float(p_all[j]),
                       "term": e.names[int(term[j])], "z": float(z[j]), "p_term": float(p_term[j]),
