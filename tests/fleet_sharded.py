@@ -1,7 +1,12 @@
-"""Run by tests/test_fleet.py in a process of its own, with 8 virtual CPU devices
-(``XLA_FLAGS=--xla_force_host_platform_device_count=8``, set before JAX starts): the fleet's
-windows of ``IN.npz`` through :func:`dtwin_jax.monitor.fleet.sharded_fleet_step`, every
-leaf of the states and reports saved to ``OUT.npz``."""
+"""Run by tests/test_fleet.py in processes of their own: the fleet's windows of ``IN.npz``
+through :func:`dtwin_jax.monitor.fleet.sharded_fleet_step` over 8 CPU devices.
+
+    python fleet_sharded.py IN.npz OUT.npz                      # one process, 8 devices
+    python fleet_sharded.py IN.npz OUT.npz RANK PROCESSES PORT  # jax.distributed on localhost
+
+Devices come from ``XLA_FLAGS=--xla_force_host_platform_device_count`` (set before JAX
+starts: 8 for one process, 8 / PROCESSES each otherwise). Each process saves the shards it
+holds of every leaf of the states and reports (``w{window}_{leaf}_{first structure}``)."""
 
 import sys
 
@@ -20,21 +25,34 @@ from dtwin_jax.monitor.fleet import (
 )
 
 
-def main(src, out):
+def main(src, out, rank=None, processes=None, port=None):
+    if rank is not None:
+        jax.distributed.initialize(f"127.0.0.1:{port}", num_processes=int(processes), process_id=int(rank))
     data = np.load(src)
     assert len(jax.devices()) == 8, jax.devices()
     nominal = LinearSecondOrder(*(jnp.asarray(data[k]) for k in ("M", "C", "K", "B", "F0")))
-    mesh = fleet_mesh()
+    mesh = fleet_mesh()  # every device of every process
+    sharding = fleet_sharding(mesh)
     step = sharded_fleet_step(mesh, **STATIC)
     F, W = data["x"].shape[:2]
-    state = fleet_init(F, 1, STATIC["lib"].K)
-    leaves = []
+
+    def put(a):  # a global array from the rows this process's devices hold
+        a = np.asarray(a)
+        return jax.make_array_from_callback(a.shape, sharding, lambda index: a[index])
+
+    state = jax.tree.map(put, fleet_init(F, 1, STATIC["lib"].K))
+    saved = {}
     for w in range(W):
-        args = (state, data["x"][:, w], data["u"][:, w], data["xdot"][:, w], nominal, jax.random.wrap_key_data(data["keys"][w]))
-        state, report = step(*jax.device_put(args, fleet_sharding(mesh)))
+        keys = jax.random.wrap_key_data(put(data["keys"][w]))
+        state, report = step(state, *(put(data[k][:, w]) for k in ("x", "u", "xdot")),
+                             jax.tree.map(put, nominal), keys)
         assert report.alarm.sharding.num_devices == 8
-        leaves.append([np.asarray(a) for a in jax.tree.leaves((state, report))])
-    np.savez(out, **{f"w{w}_{i}": a for w, ls in enumerate(leaves) for i, a in enumerate(ls)})
+        for i, leaf in enumerate(jax.tree.leaves((state, report))):
+            for shard in leaf.addressable_shards:
+                saved[f"w{w}_{i}_{shard.index[0].start or 0}"] = np.asarray(shard.data)
+    np.savez(out, **saved)
+    if rank is not None:
+        jax.distributed.shutdown()
 
 
 if __name__ == "__main__":
