@@ -5,8 +5,9 @@ Each window's own estimate of the coefficient (``window_estimates`` in the timel
 least squares on that window alone, so independent from window to window) is one point
 ``c_w +- s_w`` at service time ``t_w``. A straight line ``c(t) = a + b t`` is fitted by
 weighted least squares; the standard errors' common scale ``phi`` is unknown (a model that
-fits worse than its noise, or one that fits better), with a scaled-inverse-chi-square
-posterior that ``PRIOR_DOF`` pseudo-windows pull towards 1. Draws of ``(phi, a, b)`` give
+fits worse than its noise), with a scaled-inverse-chi-square posterior that ``PRIOR_DOF``
+pseudo-windows pull towards 1, truncated at 1: a window's own standard error is a floor (its
+residuals are taken as white), and a scatter smaller than it is chance, not precision. Draws of ``(phi, a, b)`` give
 draws of the time the line reaches the critical level; the remaining life is that time less
 now (zero once past it, infinite where the line heads away from the level).
 """
@@ -14,6 +15,7 @@ now (zero once past it, infinite where the line heads away from the level).
 from __future__ import annotations
 
 import numpy as np
+from scipy.stats import chi2
 
 from dtwin_jax.errors import DataError
 
@@ -68,7 +70,7 @@ def remaining_life(t, mean, sd, critical: float, *, now: float | None = None, le
     **Returns:** ``failure_time`` (the draws, s; ``inf`` where the trend heads away),
     ``median``, ``lower``, ``upper`` (the failure time's quantiles at ``(1 - level) / 2``, 0.5
     and ``(1 + level) / 2``), ``rul_median``, ``rul_lower``, ``rul_upper`` (the same less ``now``, at least
-    0), ``slope`` and ``slope_sd`` (per s), ``scale`` (the posterior mean of ``phi``) and the
+    0), ``slope`` and ``slope_sd`` (per s), ``scale`` (the posterior mean of ``phi``, at least 1) and the
     fitted ``line`` ``(a, b)``.
     """
     t, mean, sd = (np.asarray(a, dtype=float) for a in (t, mean, sd))
@@ -83,7 +85,9 @@ def remaining_life(t, mean, sd, critical: float, *, now: float | None = None, le
     rss = float(np.sum(w * (mean - X @ coef) ** 2))
     dof = PRIOR_DOF + W - 2
     rng = np.random.default_rng(seed)
-    phi = (PRIOR_DOF + rss) / rng.chisquare(dof, num_draws)  # scaled-inverse-chi-square draws
+    # Scaled-inverse-chi-square draws given phi >= 1: chi2 = S / phi below S = PRIOR_DOF + rss.
+    S = PRIOR_DOF + rss
+    phi = S / chi2.ppf(rng.uniform(0.0, 1.0, num_draws) * chi2.cdf(S, dof), dof)
     L = np.linalg.cholesky(np.linalg.inv(A))
     line = coef + np.sqrt(phi)[:, None] * (rng.standard_normal((num_draws, 2)) @ L.T)
     a, b = line[:, 0], line[:, 1]

@@ -145,22 +145,29 @@ def data_fingerprint(data: dict) -> str:
     return arrays_sha256({key: data.get(key) for key in ("t", "x", "u", "xdot")}, names)
 
 
-def window_estimates(result: UpdateResult, window: SuffStats) -> list[dict]:
+def window_estimates(result: UpdateResult, window: SuffStats, also=()) -> list[dict]:
     """Each drift equation's coefficients from this window alone: least squares on the
-    window's statistics over the twin's selected terms and every displacement's linear term
-    (the stiffness, followed even while it is not selected), with their standard errors from
-    the window's own residual variance. Independent from window to window (the twin's
-    posterior is not: it carries the older windows), so trends over service time are fitted
-    to these (:mod:`dtwin_jax.monitor.degradation`).
+    window's statistics over the twin's selected terms, every displacement's linear term
+    (the stiffness, followed even while it is not selected) and the terms in ``also``, with
+    their standard errors from the window's own residual variance. Independent from window
+    to window (the twin's posterior is not: it carries the older windows), so trends over
+    service time are fitted to these (:mod:`dtwin_jax.monitor.degradation`).
+
+    **Arguments:** ``result`` the twin after the window, ``window`` the window's own
+    statistics, ``also`` ``(state, term)`` pairs regressed as well (a monitor passes every
+    term it regressed before, so that a term whose selection flips from window to window
+    does not make the others' estimates jump: the track stays one model).
 
     **Returns:** one ``{"state", "terms": {term: [mean, sd]}}`` per drift equation,
     acceleration units.
     """
     nominal = result.nominal
     linear = set(nominal.state_names[:nominal.d])  # the displacements q_1 .. q_d
+    also = set(also)
     out = []
     for j, e in enumerate(e for e in result.equations if e.kind == "drift"):
-        index = [k for k, name in enumerate(e.names) if e.selected[k] or name in linear]
+        index = [k for k, name in enumerate(e.names)
+                 if e.selected[k] or name in linear or (e.state, name) in also]
         G = np.asarray(window.gram[j])[np.ix_(index, index)]
         b = np.asarray(window.xty[j])[index]
         n = float(np.asarray(window.n[j]))
@@ -174,6 +181,15 @@ def window_estimates(result: UpdateResult, window: SuffStats) -> list[dict]:
         sd = np.sqrt(np.maximum(np.diag(cov) * resid, 0.0))
         out.append({"state": e.state, "terms": {e.names[k]: [float(m), float(v)] for k, m, v in zip(index, beta, sd)}})
     return out
+
+
+def _regressed(twin: UpdateResult, timeline: list[dict]) -> set[tuple[str, str]]:
+    """``(state, term)`` of the twin's selected drift terms and of every term an earlier
+    window's estimates regressed."""
+    terms = {(e.state, name) for e in twin.equations if e.kind == "drift"
+             for name, chosen in zip(e.names, e.selected) if chosen}
+    return terms | {(e["state"], name) for w in timeline for e in w.get("window_estimates", [])
+                    for name in e.get("terms", {})}
 
 
 def first_alarm(timeline: list[dict]) -> int | None:
@@ -290,7 +306,7 @@ class Monitor:
                       "term": e.names[int(term[j])], "z": float(z[j]), "p_term": float(p_term[j]),
                       "p_value": float(p[j])} for j, e in enumerate(drift)],
             "restarted": bool(alarm),
-            "window_estimates": window_estimates(after, window),
+            "window_estimates": window_estimates(after, window, _regressed(before, timeline)),
             "data_sha256": data_fingerprint(data),
         }
         history = list(after.history)
