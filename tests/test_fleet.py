@@ -25,7 +25,7 @@ F = 8
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
     """Zoo members 0-7 (one SDOF of each family), 2 windows; members 0-3 gain their term in
-    window 1, members 4-7 stay linear. The plain (one-device, vmapped) run."""
+    window 1, members 4-7 stay linear. The plain (one-device, unsharded) run."""
     members = [zoo.draw_member(s) for s in range(F)]
     lives = [simulate_life(m.example, jax.random.key(i), scale=[0.0, float(i < 4)]) for i, m in enumerate(members)]
     data = {k: np.stack([[w[k] for w in life] for life in lives]) for k in ("x", "u", "xdot")}
