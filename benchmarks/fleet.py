@@ -33,7 +33,6 @@ if ("--platform" not in sys.argv or "cpu" in sys.argv) and "--rank" not in sys.a
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
 
 import dtwin_jax  # noqa: E402,F401
 from dtwin_jax.library import parse_library  # noqa: E402
@@ -43,6 +42,7 @@ from dtwin_jax.monitor import MONITOR_SETTINGS  # noqa: E402
 from dtwin_jax.monitor.fleet import (  # noqa: E402
     fleet_init,
     fleet_mesh,
+    fleet_put,
     fleet_sharding,
     fleet_step,
     sharded_fleet_step,
@@ -93,19 +93,7 @@ def main():
 
     if a.rank is not None:  # every process's device in one mesh; each puts the rows it holds
         mesh = fleet_mesh()
-        sharding = fleet_sharding(mesh)
-
-        def put(args):
-            def one(x):
-                if isinstance(x, jax.Array) and not x.is_fully_addressable:
-                    return x  # the last window's output: on the mesh already
-                x = np.asarray(jax.random.key_data(x) if jnp.issubdtype(x.dtype, jax.dtypes.prng_key) else x)
-                return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
-            state, x, u, xdot, nominal, keys = args
-            out = jax.tree.map(one, (state, x, u, xdot, nominal))
-            return (*out, keys if not keys.is_fully_addressable else jax.random.wrap_key_data(one(keys)))
-
-        first, seconds = run(sharded_fleet_step(mesh, **static), put)
+        first, seconds = run(sharded_fleet_step(mesh, **static), lambda args: fleet_put(args, mesh))
         print(json.dumps({"rank": a.rank, "first": first, "seconds": seconds}), flush=True)
         jax.distributed.shutdown()
         return

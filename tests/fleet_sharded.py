@@ -20,7 +20,7 @@ from dtwin_jax.models.systems import LinearSecondOrder
 from dtwin_jax.monitor.fleet import (
     fleet_init,
     fleet_mesh,
-    fleet_sharding,
+    fleet_put,
     sharded_fleet_step,
 )
 
@@ -32,20 +32,15 @@ def main(src, out, rank=None, processes=None, port=None):
     assert len(jax.devices()) == 8, jax.devices()
     nominal = LinearSecondOrder(*(jnp.asarray(data[k]) for k in ("M", "C", "K", "B", "F0")))
     mesh = fleet_mesh()  # every device of every process
-    sharding = fleet_sharding(mesh)
     step = sharded_fleet_step(mesh, **STATIC)
     F, W = data["x"].shape[:2]
 
-    def put(a):  # a global array from the rows this process's devices hold
-        a = np.asarray(a)
-        return jax.make_array_from_callback(a.shape, sharding, lambda index: a[index])
-
-    state = jax.tree.map(put, fleet_init(F, 1, STATIC["lib"].K))
+    state = fleet_init(F, 1, STATIC["lib"].K)
     saved = {}
     for w in range(W):
-        keys = jax.random.wrap_key_data(put(data["keys"][w]))
-        state, report = step(state, *(put(data[k][:, w]) for k in ("x", "u", "xdot")),
-                             jax.tree.map(put, nominal), keys)
+        keys = jax.random.wrap_key_data(data["keys"][w])
+        args = (state, *(data[k][:, w] for k in ("x", "u", "xdot")), nominal, keys)
+        state, report = step(*fleet_put(args, mesh))
         assert report.alarm.sharding.num_devices == 8
         for i, leaf in enumerate(jax.tree.leaves((state, report))):
             for shard in leaf.addressable_shards:

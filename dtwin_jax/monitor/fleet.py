@@ -30,7 +30,7 @@ from dtwin_jax.monitor.service import LOOKBACK
 from dtwin_jax.sampler import SamplerSettings, SuffStats, sample
 from dtwin_jax.sampler.driver import batch_map, default_batch_method
 
-__all__ = ["FleetState", "FleetReport", "fleet_init", "fleet_step", "fleet_mesh", "sharded_fleet_step"]
+__all__ = ["FleetState", "FleetReport", "fleet_init", "fleet_step", "fleet_mesh", "fleet_put", "sharded_fleet_step"]
 
 FLEET_AXIS = "fleet"
 
@@ -162,3 +162,21 @@ def sharded_fleet_step(mesh: Mesh, **static):
 def fleet_sharding(mesh: Mesh) -> NamedSharding:
     """The sharding of an array whose leading axis is the fleet's."""
     return NamedSharding(mesh, PartitionSpec(FLEET_AXIS))
+
+
+def fleet_put(tree, mesh: Mesh):
+    """Every array of ``tree`` (leading axis the fleet's) as a global array on ``mesh``, built
+    from the rows this process's devices hold: the same call on every process after
+    :func:`jax.distributed.initialize` (each holds the whole input, or at least its rows).
+    PRNG keys stay keys; arrays already spread over the mesh (a step's output) pass as they are."""
+    sharding = fleet_sharding(mesh)
+
+    def one(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            return x
+        key = isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jax.dtypes.prng_key)
+        a = np.asarray(jax.random.key_data(x) if key else x)
+        out = jax.make_array_from_callback(a.shape, sharding, lambda index: a[index])
+        return jax.random.wrap_key_data(out) if key else out
+
+    return jax.tree.map(one, tree)
