@@ -87,6 +87,13 @@ def test_the_twin_from_accelerometers_saves_loads_and_draws(hardening, tmp_path)
     np.testing.assert_array_equal(loaded.equations[1].theta, result.equations[1].theta)
     twins = posterior_twins(loaded, num_draws=8)
     assert twins.stochastic and twins.diffusion_library.names == ("1",)
+    # The window's score spread over its states' error (the monitor's test) travels too: a
+    # covariance over the 16 draws, positive on the diagonal.
+    spread = result.statistics["drift_spread"]
+    K = len(result.equations[0].names)
+    assert np.shape(spread.gram) == (1, K, K) and float(spread.n[0]) == 16
+    assert np.all(np.diag(spread.gram[0]) > 0) and np.allclose(spread.gram[0], spread.gram[0].T)
+    np.testing.assert_array_equal(loaded.statistics["drift_spread"].gram, spread.gram)
 
 
 @pytest.mark.parametrize("case", ["re-update", "diffusion library", "one accelerometer of two"])

@@ -17,7 +17,9 @@ A twin folder ``TWIN_DIR`` holds, format version 2:
   * ``statistics.npz``: the sufficient statistics the sampler saw (``<kind>_gram``,
     ``_xty``, ``_yty``, ``_n``), so that a re-update can use the posterior as its prior;
     a monitored twin (:mod:`dtwin_jax.monitor`) also its last windows' statistics and its
-    belief before each (``recent_windows_*``, ``recent_beliefs_*``, a leading axis of 1-4);
+    drift statistics before each and their score spreads (``recent_windows_*``,
+    ``recent_twins_*``, ``recent_spreads_*``, a leading axis of 1-4); an update from
+    accelerometers alone its window's score spread (``drift_spread_*``);
   * ``result.json``: the result file of formats.md for the last update;
 
 * ``.lock``: the lock file (never deleted).
@@ -57,13 +59,12 @@ from pathlib import Path
 import numpy as np
 
 from dtwin_jax import sampler
-from dtwin_jax.io import twin_files, twin_folder
 from dtwin_jax.errors import DataError
-from dtwin_jax.io import json_safe, load_nominal, write_nominal
+from dtwin_jax.io import json_safe, load_nominal, twin_files, twin_folder, write_nominal
+from dtwin_jax.io.twin_folder import CONTENT, FORMAT, V1_FILES, check_target, locked
 from dtwin_jax.library import parse_library
 from dtwin_jax.posterior import EquationPosterior
 from dtwin_jax.resources import check_num_inputs
-from dtwin_jax.io.twin_folder import CONTENT, FORMAT, V1_FILES, check_target, locked
 
 __all__ = ["FORMAT", "VERSION", "save_twin", "load_twin", "locked", "check_target", "twin_revision"]
 
@@ -358,8 +359,9 @@ def _statistics(head, blobs, folder, equations) -> dict:
         if eqs:
             shapes[kind] = (len(eqs), len(eqs[0].names))
     optional = {kind: shapes["drift"] for kind in twin_files.RECENT_KINDS} if "drift" in shapes else {}
+    maybe = {twin_files.SPREAD_KIND: shapes["drift"]} if "drift" in shapes else {}
     stats = twin_files.read_statistics(blobs["statistics.npz"], str(folder / "statistics.npz"), shapes, optional,
-                                       twin_files.MAX_RECENT)
+                                       twin_files.MAX_RECENT, maybe)
     return {kind: sampler.SuffStats(*(s[f] for f in sampler.SuffStats._fields)) for kind, s in stats.items()}
 
 

@@ -253,24 +253,28 @@ def read_posterior(data: bytes, name: str, equations: list[tuple[str, str, int]]
     return out
 
 
-# A monitored twin also keeps its last windows (dtwin_jax.monitor): their statistics and the
-# twin's belief before each (mean as xty, covariance as gram, residual variance as yty),
-# newest first, at most MAX_RECENT.
-RECENT_KINDS = ("recent_windows", "recent_beliefs")
+# A monitored twin also keeps its last windows (dtwin_jax.monitor): their drift statistics and
+# the twin's before each, newest first, at most MAX_RECENT.
+RECENT_KINDS = ("recent_windows", "recent_twins", "recent_spreads")
 MAX_RECENT = 4
+# An update from accelerometers alone also keeps the covariance of its window's drift score
+# over draws of the states' estimation error (gram; dtwin_jax.monitor.change.window_test).
+SPREAD_KIND = "drift_spread"
 
 
 def read_statistics(data: bytes, name: str, expected: dict[str, tuple[int, int]],
-                    optional: dict[str, tuple[int, int]] | None = None, max_lead: int = 0) -> dict:
+                    optional: dict[str, tuple[int, int]] | None = None, max_lead: int = 0,
+                    maybe: dict[str, tuple[int, int]] | None = None) -> dict:
     """The sufficient statistics of ``statistics.npz`` (bytes): ``expected`` maps each kind
     to ``(q equations, K terms)``; returns ``kind -> {gram (q, K, K), xty (q, K), yty (q,),
     n (q,)}`` as float64, exactly those keys, no pickled objects. ``optional`` kinds (a
     monitor's recent windows) may be there or not, all together, each with a leading axis of
-    the same length ``P <= max_lead``."""
+    the same length ``P <= max_lead``; ``maybe`` kinds may be there or not, each alone."""
     optional = optional or {}
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
             files = set(z.files)
+            expected = {**expected, **{k: v for k, v in (maybe or {}).items() if f"{k}_n" in files}}
             lead = {k: z[f"{k}_n"].shape[:1] for k in optional if f"{k}_n" in files}
             present = {k: v for k, v in optional.items() if k in lead} if lead else {}
             if lead and len(present) < len(optional):

@@ -2,9 +2,7 @@
 before it, then absorbed (formats.md, "Monitoring a structure in service")."""
 
 from dtwin_jax.monitor.change import (
-           Belief,
            ChangeTest,
-           belief,
            window_statistics,
            window_test,
 )
@@ -16,5 +14,5 @@ from dtwin_jax.monitor.service import (
            first_alarm,
 )
 
-__all__ = ["Belief", "ChangeTest", "belief", "window_statistics", "window_test", "MONITOR_SETTINGS", "Monitor",
+__all__ = ["ChangeTest", "window_statistics", "window_test", "MONITOR_SETTINGS", "Monitor",
            "alarm_reasons", "data_fingerprint", "first_alarm"]

@@ -25,7 +25,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from dtwin_jax.input_output.targets import input_output_stats
 from dtwin_jax.library import Library
-from dtwin_jax.monitor.change import Belief, overdispersion, window_test
+from dtwin_jax.monitor.change import overdispersion, window_test
 from dtwin_jax.monitor.service import LOOKBACK
 from dtwin_jax.sampler import SamplerSettings, SuffStats, sample
 from dtwin_jax.sampler.driver import batch_map, default_batch_method
@@ -38,12 +38,11 @@ FLEET_AXIS = "fleet"
 class FleetState(NamedTuple):
     """What a fleet of ``F`` structures carries from one window to the next (``P = LOOKBACK - 1``)."""
 
-    belief: Belief  # (F, q, K), (F, q, K, K), (F, q): each twin's drift coefficients
-    stats: SuffStats  # (F, q, K, K), (F, q, K), (F, q), (F, q): the statistics they were sampled from
+    stats: SuffStats  # (F, q, K, K), (F, q, K), (F, q), (F, q): each twin's drift statistics
     recent_windows: SuffStats  # (F, P, q, ...): the last windows' statistics, newest first
-    recent_beliefs: Belief  # (F, P, q, ...): the twin's belief before each of them
+    recent_twins: SuffStats  # (F, P, q, ...): the twin's statistics before each of them
     recent_count: jax.Array  # (F,) int: how many of them count (since the last restart)
-    ratio_sum: jax.Array  # (F, q) sum of T / df over the windows without an alarm (overdispersion)
+    ratio_sum: jax.Array  # (F, q) sum of T over the windows without an alarm (overdispersion)
     ratio_count: jax.Array  # (F, q) their number
     fresh: jax.Array  # (F,) bool: no twin yet (the next window is its baseline, untested)
 
@@ -65,35 +64,23 @@ def fleet_init(num_structures: int, num_equations: int, num_terms: int) -> Fleet
     def stats(*lead):
         return SuffStats(*(jnp.zeros(lead + s, jnp.float64) for s in ((q, K, K), (q, K), (q,), (q,))))
 
-    def belief(*lead):
-        return Belief(jnp.zeros(lead + (q, K), jnp.float64), jnp.zeros(lead + (q, K, K), jnp.float64),
-                      jnp.ones(lead + (q,), jnp.float64))
-
-    return FleetState(belief(F), stats(F), stats(F, P), belief(F, P), jnp.zeros((F,), jnp.int32),
+    return FleetState(stats(F), stats(F, P), stats(F, P), jnp.zeros((F,), jnp.int32),
                       jnp.zeros((F, q), jnp.float64), jnp.zeros((F, q), jnp.float64), jnp.ones((F,), bool))
 
 
-def _alarm_p(st: FleetState, belief: Belief, window: SuffStats, dispersion):
+def _alarm_p(st: FleetState, window: SuffStats, dispersion):
     """:func:`~dtwin_jax.monitor.service.combined_p_value` of the pooled tests of one
     structure (:func:`~dtwin_jax.monitor.service.pooled_tests`), jittable: ``(p, p_window,
-    the window's own unscaled T / df (q,))``."""
+    the window's own unscaled T (q,))``."""
     cums = jax.tree.map(lambda w, r: jnp.concatenate([w[None], w[None] + jnp.cumsum(r, axis=0)]), window,
                         st.recent_windows)
-    priors = jax.tree.map(lambda b, r: jnp.concatenate([b[None], r]), belief, st.recent_beliefs)
-    tests = jax.vmap(window_test, in_axes=(0, 0, None))(priors, cums, dispersion)
+    twins = jax.tree.map(lambda b, r: jnp.concatenate([b[None], r]), st.stats, st.recent_twins)
+    tests = jax.vmap(window_test, in_axes=(0, 0, None))(twins, cums, dispersion)
     q = tests.p_value.shape[-1]
     p = jnp.minimum(1.0, jnp.min(tests.p_value, axis=-1) * q)  # (P + 1,)
     valid = jnp.arange(p.size) <= st.recent_count
-    ratio = tests.statistic[0] * dispersion / jnp.maximum(tests.df[0], 1)
+    ratio = tests.statistic[0] * dispersion
     return jnp.minimum(1.0, jnp.min(jnp.where(valid, p, jnp.inf)) * jnp.sum(valid)), p[0], ratio
-
-
-def _belief(trace) -> Belief:
-    """Belief of one equation from its draws ``(C, D, K)``."""
-    theta = trace.theta.reshape(-1, trace.theta.shape[-1])
-    mean = theta.mean(axis=0)
-    d = theta - mean
-    return mean, d.T @ d / (theta.shape[0] - 1), trace.sigma2.mean()
 
 
 def fleet_step(state: FleetState, x, u, xdot, nominal, keys, *, lib: Library, dt: float, half_width: int,
@@ -119,21 +106,20 @@ def fleet_step(state: FleetState, x, u, xdot, nominal, keys, *, lib: Library, dt
     def one(st: FleetState, x, u, xdot, nominal, key):
         window = input_output_stats(nominal, lib, dt, x, u, xdot, half_width)
         q = window.n.shape[0]
-        p_value, p_window, ratio = _alarm_p(st, st.belief, window, overdispersion(st.ratio_sum, st.ratio_count))
+        p_value, p_window, ratio = _alarm_p(st, window, overdispersion(st.ratio_sum, st.ratio_count))
         p_value, p_window = jnp.where(st.fresh, 1.0, p_value), jnp.where(st.fresh, 1.0, p_window)
         alarm = (p_value < false_alarm) & ~st.fresh
         restart = alarm | st.fresh
         stats = jax.tree.map(lambda w, old: jnp.where(restart, w, w + forget * old), window, st.stats)
         trace = jax.vmap(lambda k, s: sample(k, s, settings))(jax.random.split(key, q), stats)
-        belief = Belief(*jax.vmap(_belief)(trace))
         windows = jax.tree.map(lambda w, r: jnp.concatenate([w[None], r[:-1]]), window, st.recent_windows)
-        beliefs = jax.tree.map(lambda b, r: jnp.concatenate([b[None], r[:-1]]), st.belief, st.recent_beliefs)
+        twins = jax.tree.map(lambda b, r: jnp.concatenate([b[None], r[:-1]]), st.stats, st.recent_twins)
         count = jnp.where(restart, 0, jnp.minimum(st.recent_count + 1, LOOKBACK - 1))
         calm = ~restart  # a tested window without an alarm: its T / df joins the dispersion's
         pip = trace.gamma.mean(axis=(1, 2))
-        return (FleetState(belief, stats, windows, beliefs, count, st.ratio_sum + jnp.where(calm, ratio, 0.0),
+        return (FleetState(stats, windows, twins, count, st.ratio_sum + jnp.where(calm, ratio, 0.0),
                            st.ratio_count + calm, jnp.zeros((), bool)),
-                FleetReport(alarm, p_value, p_window, pip, belief.mean))
+                FleetReport(alarm, p_value, p_window, pip, trace.theta.mean(axis=(1, 2))))
 
     # On the CPU one structure after another: a vmapped batch runs every structure's sampler
     # loops as long as its slowest one's (512 structures on one core: 0.30 s per structure-window

@@ -20,21 +20,16 @@ import time
 import numpy as np
 
 from dtwin_jax.errors import DataError
-from dtwin_jax.io.twin_files import MAX_RECENT, RECENT_KINDS
-from dtwin_jax.monitor.change import (
-    Belief,
-    belief,
-    overdispersion,
-    window_statistics,
-    window_test,
-)
+from dtwin_jax.io.twin_files import MAX_RECENT, RECENT_KINDS, SPREAD_KIND
+from dtwin_jax.monitor.change import overdispersion, window_statistics, window_test
 from dtwin_jax.sampler import SuffStats
 from dtwin_jax.update.from_data import update_from_data
 from dtwin_jax.update.lifecycle import arrays_sha256
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 
 __all__ = ["LOOKBACK", "MONITOR_SETTINGS", "Monitor", "alarm_reasons", "combined_p_value", "data_fingerprint",
-           "first_alarm", "pooled_tests", "recent_windows", "timeline_dispersion", "window_estimates"]
+           "first_alarm", "pooled_tests", "recent_windows", "timeline_dispersion", "window_estimates",
+           "window_spread"]
 
 # Two chains of 1000 draws: a 1 s window tested and absorbed in about 0.2 s warm on one core.
 MONITOR_SETTINGS = SamplerSettings(num_chains=2, num_draws=1000, num_burnin=500)
@@ -44,48 +39,59 @@ RESTART_PRIOR = "spike-and-slab (restarted: the window disagreed with the twin)"
 LOOKBACK = MAX_RECENT + 1
 
 
-def recent_windows(result: UpdateResult) -> list[tuple[SuffStats, Belief]]:
-    """A monitored twin's last windows, newest first: each window's drift statistics and the
-    twin's :class:`~dtwin_jax.monitor.change.Belief` before it (empty after a restart)."""
-    windows, beliefs = (result.statistics.get(kind) for kind in RECENT_KINDS)
-    if windows is None or beliefs is None:
+def recent_windows(result: UpdateResult) -> list[tuple[SuffStats, SuffStats, SuffStats]]:
+    """A monitored twin's last windows, newest first: each window's drift statistics, the
+    twin's before it and the window's score spread (:func:`window_spread`); empty after a
+    restart."""
+    kinds = [result.statistics.get(kind) for kind in RECENT_KINDS]
+    if any(k is None for k in kinds):
         return []
-    out = []
-    for j in range(np.shape(windows.n)[0]):
-        w = SuffStats(*(np.asarray(a)[j] for a in windows))
-        b = Belief(np.asarray(beliefs.xty)[j], np.asarray(beliefs.gram)[j], np.asarray(beliefs.yty)[j])
-        out.append((w, b))
-    return out
+    return [tuple(SuffStats(*(np.asarray(a)[j] for a in s)) for s in kinds) for j in range(np.shape(kinds[0].n)[0])]
 
 
-def _with_recent(statistics: dict, recent: list[tuple[SuffStats, Belief]]) -> dict:
+def window_spread(result: UpdateResult) -> SuffStats:
+    """The covariance of the last update's window's drift score over draws of its states'
+    error (``gram``; zeros where the states were not estimated), as the update stored it."""
+    spread = result.statistics.get(SPREAD_KIND)
+    if spread is not None:
+        return _stats(spread)
+    q, K = np.shape(result.statistics["drift"].xty)
+    return SuffStats(np.zeros((q, K, K)), np.zeros((q, K)), np.zeros(q), np.zeros(q))
+
+
+def _with_recent(statistics: dict, recent: list[tuple[SuffStats, SuffStats, SuffStats]]) -> dict:
     """``statistics`` with ``recent`` (newest first) as the store keeps it."""
     out = {k: v for k, v in statistics.items() if k not in RECENT_KINDS}
     if recent:
-        out[RECENT_KINDS[0]] = SuffStats(*(np.stack([np.asarray(getattr(w, f)) for w, _ in recent])
-                                           for f in SuffStats._fields))
-        out[RECENT_KINDS[1]] = SuffStats(np.stack([np.asarray(b.cov) for _, b in recent]),
-                                         np.stack([np.asarray(b.mean) for _, b in recent]),
-                                         np.stack([np.asarray(b.sigma2) for _, b in recent]),
-                                         np.zeros((len(recent),) + np.shape(recent[0][1].sigma2)))
+        for i, kind in enumerate(RECENT_KINDS):
+            out[kind] = SuffStats(*(np.stack([np.asarray(getattr(r[i], f)) for r in recent]) for f in SuffStats._fields))
     return out
 
 
-def pooled_tests(prior: Belief, window: SuffStats, recent: list[tuple[SuffStats, Belief]], dispersion=1.0) -> list:
-    """The window against ``prior`` (the twin before it), then the window pooled with the
-    ``1 .. len(recent)`` windows before it against the twin before the oldest of those:
-    one :class:`~dtwin_jax.monitor.change.ChangeTest` each, with ``dispersion``
-    (:func:`~dtwin_jax.monitor.change.overdispersion`)."""
-    tests, pooled = [window_test(prior, window, dispersion)], window
-    for w, b in recent:
+def _stats(s) -> SuffStats:
+    return SuffStats(*(np.asarray(a, dtype=float) for a in s))
+
+
+def pooled_tests(twin: SuffStats, window: SuffStats, recent: list[tuple[SuffStats, SuffStats, SuffStats]],
+                 dispersion=1.0, spread: SuffStats | None = None) -> list:
+    """The window against ``twin`` (the twin's drift statistics before it), then the window
+    pooled with the ``1 .. len(recent)`` windows before it against the twin before the oldest
+    of those: one :class:`~dtwin_jax.monitor.change.ChangeTest` each, with ``dispersion``
+    (:func:`~dtwin_jax.monitor.change.overdispersion`) and the windows' score spreads
+    (``spread`` this window's, :func:`window_spread`, and each recent window's third item;
+    None: none)."""
+    omega = 0.0 if spread is None else np.asarray(spread.gram)
+    tests, pooled = [window_test(twin, window, dispersion, omega)], window
+    for w, before, s in recent:
         pooled = SuffStats(*(np.asarray(x) + np.asarray(y) for x, y in zip(pooled, w)))
-        tests.append(window_test(b, pooled, dispersion))
+        omega = omega if s is None else omega + np.asarray(s.gram)
+        tests.append(window_test(before, pooled, dispersion, omega))
     return tests
 
 
 def timeline_dispersion(timeline: list[dict], num_equations: int) -> np.ndarray:
     """:func:`~dtwin_jax.monitor.change.overdispersion` of each drift equation from the
-    timeline's windows without an alarm (their unscaled ``T / df``)."""
+    timeline's windows without an alarm (their unscaled ``T``)."""
     total, count = np.zeros(num_equations), np.zeros(num_equations)
     for w in timeline:
         tests = w.get("test")
@@ -93,7 +99,7 @@ def timeline_dispersion(timeline: list[dict], num_equations: int) -> np.ndarray:
             continue
         for j, t in enumerate(tests):
             if t.get("df", 0) > 0:
-                total[j] += t["statistic"] * t.get("dispersion", 1.0) / t["df"]
+                total[j] += t["statistic"] * t.get("dispersion", 1.0)
                 count[j] += 1
     return np.asarray(overdispersion(total, count))
 
@@ -271,11 +277,12 @@ class Monitor:
         before = self.twin
         seed = self.seed + len(before.history)
         after = self._update(data, source, before, seed)
-        prior, window = belief(before), window_statistics(after, before, self.forget)
+        twin, window = _stats(before.statistics["drift"]), window_statistics(after, before, self.forget)
         recent = recent_windows(before)
         timeline = self.timeline
-        dispersion = timeline_dispersion(timeline, int(np.shape(prior.sigma2)[0]))
-        tests = pooled_tests(prior, window, recent, dispersion)
+        dispersion = timeline_dispersion(timeline, int(np.shape(twin.n)[0]))
+        spread = window_spread(after)
+        tests = pooled_tests(twin, window, recent, dispersion, spread)
         p_combined, p_window = combined_p_value(tests)
         stat, df, p_all, term, z, p_term, p = (np.asarray(a) for a in tests[0])
         alarm = p_combined < self.false_alarm
@@ -285,7 +292,7 @@ class Monitor:
             entry = {**fresh.history[-1], "update": len(before.history) + 1, "prior": RESTART_PRIOR}
             after = dataclasses.replace(fresh, history=list(before.history) + [entry])
             new, dropped, changed = alarm_reasons(before, after)
-        recent = [] if alarm else [(window, prior)] + recent[:LOOKBACK - 2]
+        recent = [] if alarm else [(window, twin, spread)] + recent[:LOOKBACK - 2]
         after = dataclasses.replace(after, statistics=_with_recent(after.statistics, recent))
         drift = [e for e in before.equations if e.kind == "drift"]
         record = {

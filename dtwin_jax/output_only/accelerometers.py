@@ -36,6 +36,7 @@ from dtwin_jax.collinearity import collinearity_checks
 from dtwin_jax.data import check_records, state_range
 from dtwin_jax.errors import DataError
 from dtwin_jax.input_output.accelerometers import without_constant_columns
+from dtwin_jax.io.twin_files import SPREAD_KIND
 from dtwin_jax.library import Library
 from dtwin_jax.models.systems import LinearSecondOrder
 from dtwin_jax.output_only.stats import first_pass_settings
@@ -61,7 +62,7 @@ from dtwin_jax.update.lifecycle import (
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 from dtwin_jax.update.sampling import numpy_stats, posteriors, sample_equations
 
-__all__ = ["CONSTANT_DIFFUSION", "SPLIT_PASSES", "update_from_accelerometers", "increment_stats"]
+__all__ = ["CONSTANT_DIFFUSION", "SPLIT_PASSES", "update_from_accelerometers", "increment_stats", "score_spread"]
 
 # The diffusion of each velocity is one constant: formats.md's "constant-only diffusion is the
 # term 1".
@@ -144,7 +145,8 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
         draws, coef = states_info.pop("error_draws", None), states_info.pop("coefficients")
         stats = with_previous(increment_stats(nominal, lib, dt, a, xs), "drift", previous, forget)
         trace = jax.block_until_ready(sample_equations(stats, settings, seed, progress))
-        errors = _errors_in_variables(nominal, lib, dt, a, xs, coef, draws)
+        perturbed = None if draws is None else [increment_stats(nominal, lib, dt, a, xs + draw) for draw in draws]
+        errors = _errors_in_variables(coef, perturbed)
         if errors is not None:  # the states' estimation error, in the selected terms' draws
             trace = trace._replace(theta=widened_draws(trace.theta, trace.gamma, errors, seed))
         drift = posteriors(trace, regressed, "drift", lib.names, pip_threshold)
@@ -191,7 +193,8 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
             "stage_seconds": dict(stages.seconds),
         },
         checks=checks,
-        statistics={"drift": numpy_stats(stats), "diffusion": numpy_stats(diffusion_stats)},
+        statistics={"drift": numpy_stats(stats), "diffusion": numpy_stats(diffusion_stats),
+                    **({} if perturbed is None else {SPREAD_KIND: score_spread(coef, perturbed)})},
         history=updated_history(previous, "output-only", rec, forget, equations, time.perf_counter() - start),
     )
 
@@ -216,17 +219,31 @@ def increment_stats(nominal: LinearSecondOrder, lib: Library, dt: float, a, x) -
     return SuffStats(np.stack([L.T @ L] * d), (L.T @ y).T, (y * y).sum(axis=0), np.full(d, float(L.shape[0])))
 
 
-def _errors_in_variables(nominal, lib, dt, a, x, coef, draws) -> dict | None:
-    """The spread of the selected terms' fit over draws ``(S, R, N, m)`` of the states'
-    estimation error, for :func:`~dtwin_jax.preprocess.accelerometers.widened_draws` (no feedback gain):
-    None when nothing is selected or no draws."""
-    if coef is None or draws is None:
+def _errors_in_variables(coef, perturbed) -> dict | None:
+    """The spread of the selected terms' fit over the statistics ``perturbed`` at draws of the
+    states' estimation error, for :func:`~dtwin_jax.preprocess.accelerometers.widened_draws`
+    (no feedback gain): None when nothing is selected or no draws."""
+    if coef is None or perturbed is None:
         return None
     index = [(e, int(k)) for e in range(coef.shape[0]) for k in np.flatnonzero(coef[e])]
     if not index:
         return None
-    fits = np.array([selected_least_squares(increment_stats(nominal, lib, dt, a, x + draw), index) for draw in draws])
+    fits = np.array([selected_least_squares(st, index) for st in perturbed])
     return {"index": index, "gain": np.eye(len(index)), "extra": np.atleast_2d(np.cov(fits.T))}
+
+
+def score_spread(coef, perturbed) -> SuffStats:
+    """The covariance of each equation's score ``b - G c`` (``c`` the window's coefficients
+    ``coef (q, K)``, zero if None) over the statistics ``perturbed`` at draws of the states'
+    estimation error: the part of a window's score that its own states' error puts there
+    (:func:`~dtwin_jax.monitor.change.window_test`). As ``SuffStats``: ``gram (q, K, K)`` the
+    covariance, the rest zeros but ``n``, the number of draws."""
+    scores = np.array([np.asarray(st.xty) - np.einsum("jkl,jl->jk", np.asarray(st.gram),
+                                                        0.0 if coef is None else np.asarray(coef, dtype=float))
+                       for st in perturbed])  # (S, q, K)
+    S, q, K = scores.shape
+    d = scores - scores.mean(axis=0)
+    return SuffStats(np.einsum("sjk,sjl->jkl", d, d) / max(S - 1, 1), np.zeros((q, K)), np.zeros(q), np.full(q, float(S)))
 
 
 def _split(info: dict) -> tuple[np.ndarray, np.ndarray]:
