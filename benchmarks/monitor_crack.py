@@ -61,7 +61,7 @@ def crack_life(seed: int, windows: int, critical: float, level: float = 0.05, ma
     return data, failure
 
 
-def life(seed: int, windows: int, critical: float) -> dict:
+def life(seed: int, windows: int, critical: float, trends=("linear", "quadratic")) -> dict:
     data, failure = crack_life(seed, windows, critical)
     nominal = LinearSecondOrder.create([[1.0]], [[2.0]], [[2000.0]], [[1.0]])
     base = update_from_data("input-output", nominal, data[0], library=LIBRARY, settings=MONITOR_SETTINGS)
@@ -69,10 +69,13 @@ def life(seed: int, windows: int, critical: float) -> dict:
     t0 = time.perf_counter()
     entries = [mon.step(d, source=f"w{i}") for i, d in enumerate(data[1:], start=1)]
     track = coefficient_track(mon.timeline, "x2:x1")
-    rul = remaining_life(track["t"], track["mean"], track["sd"], critical * 2000.0)
-    return {"seed": seed, "failure": failure, "lower": rul["lower"], "median": rul["median"], "upper": rul["upper"],
-            "covered": bool(rul["lower"] <= failure <= rul["upper"]), "alarms": [e["index"] for e in entries if e["alarm"]],
-            "now": rul["now"], "seconds": time.perf_counter() - t0}
+    out = {"seed": seed, "failure": failure, "alarms": [e["index"] for e in entries if e["alarm"]],
+           "seconds": time.perf_counter() - t0}
+    for trend in trends:
+        rul = remaining_life(track["t"], track["mean"], track["sd"], critical * 2000.0, trend=trend)
+        out[trend] = {"lower": rul["lower"], "median": rul["median"], "upper": rul["upper"],
+                      "covered": bool(rul["lower"] <= failure <= rul["upper"])}
+    return out
 
 
 def main():
@@ -88,15 +91,17 @@ def main():
         r = life(seed, a.monitored, a.critical)
         rows.append(r)
         print(json.dumps(r), flush=True)
-    widths = [(r["upper"] - r["lower"]) / r["failure"] for r in rows]
     lines = [f"## example 3's crack: {a.lives} lives (seeds {a.first_seed}..), {a.monitored} windows of 1 s monitored, "
              f"failure at {a.critical:.0%} stiffness loss", "",
-             f"- true failure times: {min(r['failure'] for r in rows):.0f}-{max(r['failure'] for r in rows):.0f} s",
-             f"- true failure time inside the 90% interval: **{sum(r['covered'] for r in rows)} / {len(rows)}**",
-             f"- median interval width: {np.median(widths):.0%} of the failure time",
-             f"- median error of the median: {np.median([abs(r['median'] / r['failure'] - 1) for r in rows]):.1%}",
-             f"- intervals entirely before the failure: {sum(r['upper'] < r['failure'] for r in rows)}, after it: "
-             f"{sum(r['lower'] > r['failure'] for r in rows)}"]
+             f"- true failure times: {min(r['failure'] for r in rows):.0f}-{max(r['failure'] for r in rows):.0f} s"]
+    for trend in ("linear", "quadratic"):
+        f = [(r[trend], r["failure"]) for r in rows]
+        widths = [(q["upper"] - q["lower"]) / failure for q, failure in f]
+        lines += [f"- {trend} trend: true failure time inside the 90% interval **{sum(q['covered'] for q, _ in f)} / "
+                  f"{len(f)}**; median width {np.median(widths):.0%} of the failure time; median error of the median "
+                  f"{np.median([abs(q['median'] / failure - 1) for q, failure in f]):.1%}; intervals entirely before "
+                  f"the failure {sum(q['upper'] < failure for q, failure in f)}, after it "
+                  f"{sum(q['lower'] > failure for q, failure in f)}"]
     text = "\n".join(lines) + "\n"
     print(text)
     if a.out:

@@ -202,8 +202,7 @@ def _remaining_panel(ax, term, track, rul):
                 label="window estimate (+-2 sd)")
     end = rul["upper"] if np.isfinite(rul["upper"]) else t[-1] + 2 * (t[-1] - t[0])
     tt = np.linspace(t[0], max(end, t[-1]), 200)
-    a, b = rul["line"]
-    ax.plot(tt, a + b * (tt - rul["now"]), color="tab:blue", lw=1, label="trend")
+    ax.plot(tt, np.polynomial.polynomial.polyval(tt - rul["now"], rul["line"]), color="tab:blue", lw=1, label="trend")
     ax.axhline(rul["critical"], color="tab:red", ls="--", lw=1, label="critical level")
     if np.isfinite(rul["lower"]):
         ax.axvspan(rul["lower"], end, color="tab:orange", alpha=0.25, lw=0, label="failure time (90% interval)")

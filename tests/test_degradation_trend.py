@@ -47,6 +47,23 @@ def test_remaining_life_counts_from_now_and_knows_a_failure_already_passed():
         remaining_life(t[:2], t[:2], t[:2] + 1, 1.0)
 
 
+def test_a_quadratic_trend_finds_the_first_crossing_of_a_curved_loss():
+    t = np.arange(10.0)
+    speeding = 1.0 + 0.5 * t + 0.1 * t**2  # reaches 20 at t = (-0.5 + sqrt(0.25 + 7.6)) / 0.2
+    rul = remaining_life(t, speeding, np.full(10, 1e-4), 20.0, trend="quadratic")
+    assert rul["median"] == pytest.approx((-0.5 + np.sqrt(0.25 + 7.6)) / 0.2, rel=1e-4)
+    assert len(rul["line"]) == 3 and rul["line"][2] == pytest.approx(0.1, rel=1e-4)
+    # A loss that levels off below the critical level never reaches it; a straight line
+    # through the same windows does (the trend is the user's assumption, stated).
+    slowing = 10.0 * (1.0 - np.exp(-t / 5.0))
+    assert np.isinf(remaining_life(t, slowing, np.full(10, 1e-4), 12.0, trend="quadratic")["median"])
+    assert np.isfinite(remaining_life(t, slowing, np.full(10, 1e-4), 12.0)["median"])
+    with pytest.raises(DataError, match="unknown trend 'cubic'"):
+        remaining_life(t, speeding, np.full(10, 1.0), 20.0, trend="cubic")
+    with pytest.raises(DataError, match="quadratic trend needs at least 4 windows"):
+        remaining_life(t[:3], t[:3], t[:3] + 1, 1.0, trend="quadratic")
+
+
 def test_a_weakening_spring_is_followed_to_its_failure_time():
     # Zoo member 2 (a quadratic spring) loses 1% of its stiffness per 1 s window: 20% at 20 s.
     member = zoo.draw_member(2)

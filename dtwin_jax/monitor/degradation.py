@@ -19,7 +19,7 @@ from scipy.stats import chi2
 
 from dtwin_jax.errors import DataError
 
-__all__ = ["PRIOR_DOF", "coefficient_track", "remaining_life"]
+__all__ = ["PRIOR_DOF", "TRENDS", "coefficient_track", "remaining_life"]
 
 # Pseudo-windows behind the prior "the windows' standard errors are right" (phi = 1).
 PRIOR_DOF = 2.0
@@ -54,9 +54,12 @@ def coefficient_track(timeline: list[dict], term: str) -> dict:
     return {"t": t.astype(float), "mean": mean.astype(float), "sd": sd.astype(float), "index": index.astype(int)}
 
 
+TRENDS = {"linear": 1, "quadratic": 2}
+
+
 def remaining_life(t, mean, sd, critical: float, *, now: float | None = None, level: float = 0.9,
-                   num_draws: int = 20000, seed: int = 0) -> dict:
-    """When a coefficient's linear trend reaches ``critical``, with its uncertainty.
+                   trend: str = "linear", num_draws: int = 20000, seed: int = 0) -> dict:
+    """When a coefficient's trend reaches ``critical``, with its uncertainty.
 
     **Arguments:**
 
@@ -65,35 +68,39 @@ def remaining_life(t, mean, sd, critical: float, *, now: float | None = None, le
     - ``critical``: the level at which the structure has failed (same units).
     - ``now``: the service time the remaining life counts from (default the last window's).
     - ``level``: the probability of the interval (default 0.9).
+    - ``trend``: ``"linear"`` (a straight line) or ``"quadratic"`` (a loss that speeds up or
+      slows down, as a crack's does: wider intervals, from the curvature's uncertainty).
     - ``num_draws``, ``seed``: Monte Carlo draws of the trend.
 
     **Returns:** ``failure_time`` (the draws, s; ``inf`` where the trend heads away),
     ``median``, ``lower``, ``upper`` (the failure time's quantiles at ``(1 - level) / 2``, 0.5
     and ``(1 + level) / 2``), ``rul_median``, ``rul_lower``, ``rul_upper`` (the same less ``now``, at least
-    0), ``slope`` and ``slope_sd`` (per s), ``scale`` (the posterior mean of ``phi``, at least 1) and the
-    fitted ``line`` ``(a, b)``.
+    0), ``slope`` and ``slope_sd`` (per s, now), ``scale`` (the posterior mean of ``phi``, at least
+    1) and the fitted ``line`` (its coefficients in powers of ``t - now``: ``(a, b)`` or ``(a, b, c)``).
     """
+    if trend not in TRENDS:
+        raise DataError(f"unknown trend {trend!r}; expected one of {', '.join(TRENDS)}")
+    degree = TRENDS[trend]
     t, mean, sd = (np.asarray(a, dtype=float) for a in (t, mean, sd))
     W = t.size
-    if W < 3 or mean.shape != t.shape or sd.shape != t.shape:
-        raise DataError(f"a trend needs at least 3 windows' estimates of the same shape, got {W}")
+    if W < degree + 2 or mean.shape != t.shape or sd.shape != t.shape:
+        raise DataError(f"a {trend} trend needs at least {degree + 2} windows' estimates of the same shape, got {W}")
     now = float(t[-1]) if now is None else float(now)
-    X = np.stack([np.ones(W), t - now], axis=1)  # centred at now: a is the level now
+    X = np.stack([(t - now) ** p for p in range(degree + 1)], axis=1)  # centred at now: a is the level now
     w = 1.0 / sd**2
     A = X.T @ (w[:, None] * X)
     coef = np.linalg.solve(A, X.T @ (w * mean))
     rss = float(np.sum(w * (mean - X @ coef) ** 2))
-    dof = PRIOR_DOF + W - 2
+    dof = PRIOR_DOF + W - (degree + 1)
     rng = np.random.default_rng(seed)
     # Scaled-inverse-chi-square draws given phi >= 1: chi2 = S / phi below S = PRIOR_DOF + rss.
     S = PRIOR_DOF + rss
     phi = S / chi2.ppf(rng.uniform(0.0, 1.0, num_draws) * chi2.cdf(S, dof), dof)
     L = np.linalg.cholesky(np.linalg.inv(A))
-    line = coef + np.sqrt(phi)[:, None] * (rng.standard_normal((num_draws, 2)) @ L.T)
-    a, b = line[:, 0], line[:, 1]
+    line = coef + np.sqrt(phi)[:, None] * (rng.standard_normal((num_draws, degree + 1)) @ L.T)
+    a = line[:, 0]
     healthy = np.sign(critical - mean[0])  # the side of the level the structure started on
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ahead = (critical - a) / b  # time from now to the crossing
+    ahead = _first_crossing(line, critical)  # time from now to the crossing
     ahead = np.where(np.isfinite(ahead) & (ahead > 0), ahead, np.inf)  # heading away: never
     ahead = np.where((critical - a) * healthy <= 0, 0.0, ahead)  # past the level already: failed
     failure = now + ahead
@@ -104,4 +111,19 @@ def remaining_life(t, mean, sd, critical: float, *, now: float | None = None, le
             "rul_lower": float(max(q[0] - now, 0.0)), "rul_median": float(max(q[1] - now, 0.0)),
             "rul_upper": float(max(q[2] - now, 0.0)), "slope": float(coef[1]),
             "slope_sd": float(np.sqrt(np.mean(phi) * np.linalg.inv(A)[1, 1])), "scale": float(np.mean(phi)),
-            "line": (float(coef[0]), float(coef[1])), "now": now, "critical": float(critical)}
+            "line": tuple(float(c) for c in coef), "now": now, "critical": float(critical), "trend": trend}
+
+
+def _first_crossing(line, critical: float) -> np.ndarray:
+    """The first ``tau > 0`` where ``sum_p line[:, p] tau^p`` reaches ``critical`` (``inf``
+    where it never does), for lines of degree 1 or 2 ``(draws, 2 or 3)``."""
+    a, b = line[:, 0] - critical, line[:, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if line.shape[1] == 2:
+            return -a / b
+        c = line[:, 2]
+        disc = b * b - 4.0 * a * c
+        root = np.sqrt(np.where(disc >= 0, disc, np.nan))
+        roots = np.stack([(-b - root) / (2.0 * c), (-b + root) / (2.0 * c)])
+        roots = np.where(np.isfinite(roots) & (roots > 0), roots, np.inf)
+        return np.where(c == 0, np.where(-a / b > 0, -a / b, np.inf), roots.min(axis=0))
