@@ -21,6 +21,7 @@ import time
 
 import jax
 import numpy as np
+from monitor_lives import report
 
 import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax.models import systems
@@ -102,11 +103,7 @@ def main():
                   f"{np.median([abs(q['median'] / failure - 1) for q, failure in f]):.1%}; intervals entirely before "
                   f"the failure {sum(q['upper'] < failure for q, failure in f)}, after it "
                   f"{sum(q['lower'] > failure for q, failure in f)}"]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if a.out:
-        with open(a.out, "a") as f:
-            f.write(text + "\n")
+    report(lines, a.out)
 
 
 if __name__ == "__main__":

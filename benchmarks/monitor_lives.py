@@ -87,6 +87,15 @@ def life(seed, kind, W, k, layout, framework, false_alarm, forget, seconds):
             "p_min": min(e["p_value"] for e in entries)}
 
 
+def report(lines: list[str], out: str | None) -> None:
+    """Print the summary's markdown lines, and append them to ``out`` when given."""
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if out:
+        with open(out, "a") as f:
+            f.write(text + "\n")
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--kind", choices=("term", "stiffness", "stationary", "weakening"), default="term")
@@ -123,11 +132,7 @@ def main():
                  f"- median interval width: {np.median(widths):.0%} of the failure time",
                  f"- median error of the median: "
                  f"{np.median([abs(r['median'] / r['failure'] - 1) for r in rows]):.1%}"]
-        text = "\n".join(lines) + "\n"
-        print(text)
-        if a.out:
-            with open(a.out, "a") as f:
-                f.write(text + "\n")
+        report(lines, a.out)
         return
     tested = sum(r["tested_before"] for r in rows)
     false = sum(r["false_alarms"] for r in rows)
@@ -142,11 +147,7 @@ def main():
     lines.append(f"- false alarms: **{false} in {tested} windows** that followed the twin")
     lines.append(f"- median seconds per window (tested and absorbed): "
                  f"{np.median([r['window_seconds'] for r in rows]):.3f}")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if a.out:
-        with open(a.out, "a") as f:
-            f.write(text + "\n")
+    report(lines, a.out)
     if a.json:
         with open(a.json, "w") as f:
             json.dump(rows, f)
