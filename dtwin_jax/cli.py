@@ -142,6 +142,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="follow this coefficient's trend (for example x2:x1, an SDOF's stiffness) to --critical: "
                          "MONITOR.json gets its remaining life")
     mo.add_argument("--critical", type=float, default=None, help="the tracked coefficient's failure level")
+    mo.add_argument("--trend", choices=("linear", "quadratic", "wiener"), default="linear",
+                    help="the tracked coefficient's trend: a straight line (default), a parabola, or a drift plus "
+                         "a random walk (wiener: damage that grows with random loads, as a crack's)")
     _add_sampler_args(mo, draws=1000, burn_in=500, chains=2)
 
     demo = sub.add_parser("demo", help="simulate a paper example, update its twin, print and save results")
@@ -443,7 +446,7 @@ def _monitor(args) -> int:
         from dtwin_jax.monitor.degradation import coefficient_track, remaining_life
 
         track = coefficient_track(timeline, args.track)
-        rul = remaining_life(track["t"], track["mean"], track["sd"], args.critical)
+        rul = remaining_life(track["t"], track["mean"], track["sd"], args.critical, trend=args.trend)
         remaining = (args.track, track, rul)
         settings["remaining_life"] = {"term": args.track, **{k: v for k, v in rul.items() if k != "failure_time"},
                                       "windows": len(track["t"])}

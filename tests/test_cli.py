@@ -72,6 +72,7 @@ def test_bad_input_one_line_error_and_no_file(tmp_path, capsys, case):
     ["discover", "data.npz", "--nominal", "n.toml", "--chains", "0"],
     ["frobnicate"],
     ["sweep", "--mode", "sideways"],
+    ["monitor", "twin", "w1.npz", "--track", "x2:x1", "--critical", "1", "--trend", "cubic"],
 ])
 def test_usage_errors_are_one_line_with_status_2(capsys, argv):
     with pytest.raises(SystemExit) as exit_:

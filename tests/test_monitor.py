@@ -182,11 +182,13 @@ def test_a_resumed_monitor_has_the_history_of_an_uninterrupted_one(files, monkey
     shutil.copytree(tmp / "twin", tmp / "again")
     windows = [str(tmp / f"w{i}.npz") for i in range(1, 5)]
     assert main(["monitor", str(tmp / "twin"), *windows, "--out", str(tmp / "m.json"), "--csv",
-                 str(tmp / "m.csv"), "--plot", str(tmp / "m.png"), "--track", "x2:x1", "--critical", "100"] + FAST) == 0
+                 str(tmp / "m.csv"), "--plot", str(tmp / "m.png"), "--track", "x2:x1", "--critical", "100",
+                 "--trend", "wiener"] + FAST) == 0
     full = json.loads((tmp / "m.json").read_text())
     rul = full.pop("remaining_life")
-    assert rul["term"] == "x2:x1" and rul["windows"] == 4 and rul["critical"] == 100.0
-    assert rul["lower"] <= rul["median"] <= rul["upper"] and rul["now"] == 4.0
+    assert rul["term"] == "x2:x1" and rul["windows"] == 4 and rul["critical"] == 100.0 and rul["trend"] == "wiener"
+    # Four noisy windows: the walk may never get there, an unbounded interval (JSON null).
+    assert rul["lower"] <= rul["median"] and rul["upper"] is None and rul["now"] == 4.0
     assert full["first_alarm"] == 1 and [w["alarm"] for w in full["windows"]] == [False, True, False, True]
     assert (tmp / "m.png").stat().st_size > 10_000 and len((tmp / "m.csv").read_text().splitlines()) == 5
     # Killed after the third window's twin was saved, before its timeline was written.
