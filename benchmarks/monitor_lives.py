@@ -72,11 +72,15 @@ def life(seed, kind, W, k, layout, framework, false_alarm, forget, seconds):
     if kind == "weakening":  # the remaining life at the last window, from the stiffness's trend
         nominal = ex.system.nominal
         track = coefficient_track(mon.timeline, "x2:x1")
-        rul = remaining_life(track["t"], track["mean"], track["sd"],
-                             CRITICAL_LOSS * float(nominal.K[0, 0] / nominal.M[0, 0]))
-        return {"seed": seed, "family": member.family, "failure": failure, "lower": rul["lower"],
-                "median": rul["median"], "upper": rul["upper"], "covered": rul["lower"] <= failure <= rul["upper"],
-                "scale": rul["scale"], "alarms": alarms, "seconds": time.perf_counter() - t0}
+        critical = CRITICAL_LOSS * float(nominal.K[0, 0] / nominal.M[0, 0])
+        out = {"seed": seed, "family": member.family, "failure": failure, "alarms": alarms,
+               "seconds": time.perf_counter() - t0, "critical": critical,
+               "track": {k: track[k].tolist() for k in ("t", "mean", "sd")}}  # to compare trends offline
+        for trend in TRENDS:
+            rul = remaining_life(track["t"], track["mean"], track["sd"], critical, trend=trend)
+            out[trend] = {"lower": rul["lower"], "median": rul["median"], "upper": rul["upper"],
+                          "covered": rul["lower"] <= failure <= rul["upper"], "scale": rul["scale"]}
+        return out
     before = [i for i in alarms if kind == "stationary" or i < k]
     after = [i for i in alarms if kind != "stationary" and i >= k]
     return {"seed": seed, "family": member.family, "alarms": alarms, "false_alarms": len(before),
@@ -85,6 +89,20 @@ def life(seed, kind, W, k, layout, framework, false_alarm, forget, seconds):
             "window_seconds": sorted(e["seconds"] for e in entries)[len(entries) // 2],
             "reasons": entries[after[0] - 1]["new_terms"] + entries[after[0] - 1]["changed_terms"] if after else [],
             "p_min": min(e["p_value"] for e in entries)}
+
+
+# The remaining-life trends compared (dtwin_jax.monitor.degradation.TRENDS).
+TRENDS = ("linear", "quadratic", "wiener")
+
+
+def trend_line(trend: str, found: list[tuple[dict, float]]) -> str:
+    """One trend's coverage over lives: ``found`` holds each life's interval and true failure time."""
+    widths = [(q["upper"] - q["lower"]) / failure if np.isfinite(q["upper"]) else np.inf for q, failure in found]
+    return (f"- {trend} trend: true failure time inside the 90% interval **{sum(q['covered'] for q, _ in found)} / "
+            f"{len(found)}**; median width {np.median(widths):.0%} of the failure time; median error of the median "
+            f"{np.median([abs(q['median'] / failure - 1) for q, failure in found]):.1%}; intervals entirely before "
+            f"the failure {sum(q['upper'] < failure for q, failure in found)}, after it "
+            f"{sum(q['lower'] > failure for q, failure in found)}")
 
 
 def report(lines: list[str], out: str | None) -> None:
@@ -123,16 +141,14 @@ def main():
         rows.append(r)
         print(json.dumps(r), flush=True)
     if a.kind == "weakening":
-        covered = sum(r["covered"] for r in rows)
-        widths = [(r["upper"] - r["lower"]) / r["failure"] for r in rows]
         lines = [f"## {a.framework}, {a.layout}, a weakening spring (SDOF members): {a.lives} lives (seeds "
                  f"{a.first_seed}..), {a.windows} windows of {a.seconds:g} s, failure at {CRITICAL_LOSS:.0%} stiffness "
-                 "loss, 1.5-3x the monitored time", "",
-                 f"- true failure time inside the 90% interval: **{covered} / {len(rows)}**",
-                 f"- median interval width: {np.median(widths):.0%} of the failure time",
-                 f"- median error of the median: "
-                 f"{np.median([abs(r['median'] / r['failure'] - 1) for r in rows]):.1%}"]
+                 "loss, 1.5-3x the monitored time", ""]
+        lines += [trend_line(trend, [(r[trend], r["failure"]) for r in rows]) for trend in TRENDS]
         report(lines, a.out)
+        if a.json:
+            with open(a.json, "w") as f:
+                json.dump(rows, f)
         return
     tested = sum(r["tested_before"] for r in rows)
     false = sum(r["false_alarms"] for r in rows)
