@@ -95,6 +95,8 @@ def test_a_quadratic_trend_finds_the_first_crossing_of_a_curved_loss():
     assert np.isfinite(remaining_life(t, slowing, np.full(10, 1e-4), 12.0)["median"])
     with pytest.raises(DataError, match="unknown trend 'cubic'"):
         remaining_life(t, speeding, np.full(10, 1.0), 20.0, trend="cubic")
+    with pytest.raises(DataError, match="positive finite standard errors"):
+        remaining_life(t, speeding, np.zeros(10), 20.0, trend="wiener")
     with pytest.raises(DataError, match="quadratic trend needs at least 4 windows"):
         remaining_life(t[:3], t[:3], t[:3] + 1, 1.0, trend="quadratic")
 

@@ -107,6 +107,8 @@ def remaining_life(t, mean, sd, critical: float, *, now: float | None = None, le
         raise DataError(f"a {trend} trend needs at least {degree + 2} windows' estimates of the same shape, got {W}")
     if not 0.0 < level < 1.0:
         raise DataError(f"the interval's level must be in (0, 1), got {level:g}")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(mean)) and np.all((sd > 0) & np.isfinite(sd))):
+        raise DataError("a trend needs finite times and estimates, and positive finite standard errors")
     now = float(t[-1]) if now is None else float(now)
     if trend == "wiener":
         return _wiener_life(t, mean, sd, float(critical), now, level, num_draws, np.random.default_rng(seed))
