@@ -22,6 +22,7 @@ import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax.models import zoo
 from dtwin_jax.models.lives import simulate_life
 from dtwin_jax.monitor import MONITOR_SETTINGS, Monitor
+from dtwin_jax.monitor.degradation import TRENDS as DEGRADATION_TRENDS
 from dtwin_jax.monitor.degradation import coefficient_track, remaining_life
 from dtwin_jax.update.from_data import update_from_data
 
@@ -91,8 +92,8 @@ def life(seed, kind, W, k, layout, framework, false_alarm, forget, seconds):
             "p_min": min(e["p_value"] for e in entries)}
 
 
-# The remaining-life trends compared (dtwin_jax.monitor.degradation.TRENDS).
-TRENDS = ("linear", "quadratic", "wiener")
+# The remaining-life trends compared: every one remaining_life knows.
+TRENDS = tuple(DEGRADATION_TRENDS)
 
 
 def trend_line(trend: str, found: list[tuple[dict, float]]) -> str:

@@ -22,6 +22,8 @@ _OPTIONS = {"draws": "--draws", "chains": "--chains", "burn_in": "--burn-in", "l
 INTERRUPTED = "dtwin-jax: interrupted; nothing was written"
 # library.DEFAULT_LIBRARY, without importing SymPy for it (tests/test_resources.py checks they agree).
 _DEFAULT_LIBRARY = "poly:6,sign,abs,xabs,exp,expxx,sin,cos,input"
+# monitor.degradation.TRENDS, without importing SciPy for it (tests/test_degradation_trend.py checks).
+_TRENDS = ("linear", "quadratic", "wiener")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -142,7 +144,7 @@ def _parser() -> argparse.ArgumentParser:
                     help="follow this coefficient's trend (for example x2:x1, an SDOF's stiffness) to --critical: "
                          "MONITOR.json gets its remaining life")
     mo.add_argument("--critical", type=float, default=None, help="the tracked coefficient's failure level")
-    mo.add_argument("--trend", choices=("linear", "quadratic", "wiener"), default="linear",
+    mo.add_argument("--trend", choices=_TRENDS, default="linear",
                     help="the tracked coefficient's trend: a straight line (default), a parabola, or a drift plus "
                          "a random walk (wiener: damage that grows with random loads, as a crack's)")
     _add_sampler_args(mo, draws=1000, burn_in=500, chains=2)

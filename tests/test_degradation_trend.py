@@ -10,7 +10,7 @@ from dtwin_jax.errors import DataError
 from dtwin_jax.models import zoo
 from dtwin_jax.models.lives import simulate_life
 from dtwin_jax.monitor import MONITOR_SETTINGS, Monitor
-from dtwin_jax.monitor.degradation import coefficient_track, remaining_life
+from dtwin_jax.monitor.degradation import TRENDS, coefficient_track, remaining_life
 from dtwin_jax.update.from_data import update_from_data
 
 
@@ -93,6 +93,9 @@ def test_a_quadratic_trend_finds_the_first_crossing_of_a_curved_loss():
     slowing = 10.0 * (1.0 - np.exp(-t / 5.0))
     assert np.isinf(remaining_life(t, slowing, np.full(10, 1e-4), 12.0, trend="quadratic")["median"])
     assert np.isfinite(remaining_life(t, slowing, np.full(10, 1e-4), 12.0)["median"])
+    from dtwin_jax.cli import _TRENDS
+
+    assert _TRENDS == tuple(TRENDS)  # the command line offers every trend
     with pytest.raises(DataError, match="unknown trend 'cubic'"):
         remaining_life(t, speeding, np.full(10, 1.0), 20.0, trend="cubic")
     with pytest.raises(DataError, match="positive finite standard errors"):

@@ -196,19 +196,18 @@ def _wiener_grid(s, s_now, mean, sd, log_prior_phi):
 
 
 def _first_passage(distance, drift, s2, rng) -> np.ndarray:
-    """Draws of the time a Brownian motion with ``drift (n,)`` and variance ``s2 (n,)`` per
+    """Draws of the time a Brownian motion with ``drift (n,)`` and variance ``s2 (n,) > 0`` per
     unit time first covers ``distance (n,)`` (0 where already covered, ``inf`` where never)."""
     D = np.maximum(distance, 0.0)
     speed = np.abs(drift)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         # Heading away, the walk still arrives with probability exp(-2 |b| D / sigma^2), and
-        # then as fast as one heading towards it; with no walk, a line's time or never.
+        # then as fast as one heading towards it.
         arrives = (drift > 0) | (rng.uniform(size=D.shape) < np.exp(-2.0 * speed * D / s2))
         shape = np.maximum(D**2 / s2, 1e-300)
         walk = np.where(speed > 0, rng.wald(np.maximum(D / np.maximum(speed, 1e-300), 1e-300), shape),
                         D**2 / (s2 * rng.standard_normal(D.shape) ** 2))  # no drift: Levy
-        tau = np.where(s2 > 0, np.where(arrives, walk, np.inf), np.where(drift > 0, D / drift, np.inf))
-    return np.where(D > 0, tau, 0.0)
+    return np.where(D > 0, np.where(arrives, walk, np.inf), 0.0)
 
 
 def _first_crossing(line, critical: float) -> np.ndarray:
