@@ -28,10 +28,14 @@ that each structure's own windows measure: `T` averages 1 over windows that foll
 when `V` is right. :func:`overdispersion` estimates it (at least 1) and the tests use `V`
 times it.
 
-A change that one term carries (a new term, a stiffness that moved) is seen with fewer windows
-by the score of each term alone, `t_k = g_k / sqrt(V_kk)` (Student's t under the same
-hypothesis): the largest `|t_k|` is tested with a Bonferroni factor `K`. The equation's p-value
-is the smaller of the two tests' times 2.
+A change that one term carries (a new term) is seen with fewer windows by the score of each
+term alone, `t_k = g_k / sqrt(V_kk)` (Student's t under the same hypothesis): the largest
+`|t_k|` is tested with a Bonferroni factor `K`. A change of the nominal model's own physics (a
+stiffness or a damping that moved) spreads over its linear terms, the displacements and the
+velocities: the score on those columns alone, `g_L^T V_LL^+ g_L / rank(V_LL)`, is F with few
+numerator degrees of freedom, so it sees such a change sooner than either test over the whole
+library. The equation's p-value is the smallest of the tests' times their number (2, or 3 with
+the linear terms).
 
 Everything here is jittable and vmappable (a fleet tests every structure's window at once).
 """
@@ -46,7 +50,7 @@ import numpy as np
 
 from dtwin_jax.sampler import SuffStats
 
-__all__ = ["PRIOR_WINDOWS", "ChangeTest", "overdispersion", "window_test", "window_statistics"]
+__all__ = ["PRIOR_WINDOWS", "ChangeTest", "linear_columns", "overdispersion", "window_test", "window_statistics"]
 
 # Eigenvalues of a scaled Gram matrix (or of V) below this fraction of the largest are its null space.
 _RANK_TOL = 1e-9
@@ -63,7 +67,8 @@ class ChangeTest(NamedTuple):
     term: jax.Array  # (q,) int: the term with the largest |t_k|
     z: jax.Array  # (q,) that t_k
     p_term: jax.Array  # (q,) min(1, K P(|t| > |t_k|))
-    p_value: jax.Array  # (q,) min(1, 2 min(p_all, p_term))
+    p_linear: jax.Array  # (q,) P(F > T_L) of the linear terms' score (1 where none is marked)
+    p_value: jax.Array  # (q,) min(1, 3 min(p_all, p_term, p_linear)); 2 and two tests without linear terms
 
 
 def window_statistics(after, before, forget: float) -> SuffStats:
@@ -81,7 +86,19 @@ def _pinv(A):
     return (U * jnp.where(keep, 1.0 / jnp.where(keep, w, 1.0), 0.0)) @ U.T, jnp.sum(keep)
 
 
-def _one(gram0, xty0, yty0, n0, gram1, xty1, yty1, n1, spread, dispersion):
+def _f_test(V, g, dof):
+    """`(T, rank V, P(F(rank V, dof) > T))` of `T = g^T V^+ g / rank V`."""
+    w, U = jnp.linalg.eigh(0.5 * (V + V.T))
+    keep = w > _RANK_TOL * jnp.maximum(jnp.max(w), jnp.finfo(V.dtype).tiny)
+    z = jnp.where(keep, U.T @ g, 0.0) / jnp.sqrt(jnp.where(keep, w, 1.0))
+    df = jnp.sum(keep)
+    T = jnp.sum(z**2) / jnp.maximum(df, 1)
+    # P(F(df, dof) > T) by the regularized incomplete beta function.
+    p = jnp.where(df > 0, jax.scipy.special.betainc(dof / 2.0, jnp.maximum(df, 1) / 2.0, dof / (dof + df * T)), 1.0)
+    return T, df, p
+
+
+def _one(gram0, xty0, yty0, n0, gram1, xty1, yty1, n1, spread, dispersion, linear):
     scale = 1.0 / jnp.sqrt(jnp.maximum(jnp.diag(gram1), jnp.finfo(gram1.dtype).tiny))
     G0, G1 = (scale[:, None] * G * scale[None, :] for G in (gram0, gram1))
     b0, b1 = scale * xty0, scale * xty1
@@ -98,19 +115,16 @@ def _one(gram0, xty0, yty0, n0, gram1, xty1, yty1, n1, spread, dispersion):
     A = jnp.eye(g.size) - B
     O = scale[:, None] * spread * scale[None, :]
     V = dispersion * (rss / dof * (G1 - B @ G1) + A @ O @ A.T + n0 / jnp.maximum(n1, 1.0) * B @ O @ B.T)
-    w, U = jnp.linalg.eigh(0.5 * (V + V.T))
-    keep = w > _RANK_TOL * jnp.maximum(jnp.max(w), jnp.finfo(V.dtype).tiny)
-    z = jnp.where(keep, U.T @ g, 0.0) / jnp.sqrt(jnp.where(keep, w, 1.0))
-    df = jnp.sum(keep)
-    T = jnp.sum(z**2) / jnp.maximum(df, 1)
-    # P(F(df, dof) > T) and P(|t(dof)| > |t_k|), by the regularized incomplete beta function.
-    p_all = jnp.where(df > 0, jax.scipy.special.betainc(dof / 2.0, jnp.maximum(df, 1) / 2.0, dof / (dof + df * T)), 1.0)
+    T, df, p_all = _f_test(V, g, dof)
+    _, df_linear, p_linear = _f_test(V * linear[:, None] * linear[None, :], g * linear, dof)
     vd = jnp.diag(V)
     tk = jnp.where(vd > _RANK_TOL * jnp.max(vd), g / jnp.sqrt(jnp.where(vd > 0, vd, 1.0)), 0.0)
     k = jnp.argmax(jnp.abs(tk))
     p_one = jax.scipy.special.betainc(dof / 2.0, 0.5, dof / (dof + tk[k] ** 2))
     p_term = jnp.minimum(1.0, g.size * p_one)
-    return T, df, p_all, k, tk[k], p_term, jnp.minimum(1.0, 2.0 * jnp.minimum(p_all, p_term))
+    tests = jnp.where(df_linear > 0, 3.0, 2.0)
+    p = jnp.minimum(1.0, tests * jnp.minimum(jnp.minimum(p_all, p_term), p_linear))
+    return T, df, p_all, k, tk[k], p_term, p_linear, p
 
 
 def overdispersion(ratio_sum, count):
@@ -124,7 +138,7 @@ def overdispersion(ratio_sum, count):
 
 
 @jax.jit
-def window_test(twin: SuffStats, window: SuffStats, dispersion=1.0, spread=0.0) -> ChangeTest:
+def window_test(twin: SuffStats, window: SuffStats, dispersion=1.0, spread=0.0, linear=False) -> ChangeTest:
     """The two-sample score test of a window's drift statistics against the twin's.
 
     **Arguments:**
@@ -137,6 +151,8 @@ def window_test(twin: SuffStats, window: SuffStats, dispersion=1.0, spread=0.0) 
     - `spread`: `(q, K, K)` (or 0): the covariance `Omega` of the window's score `b1 - G1 c`
       over draws of its states' estimation error, when its states were estimated
       (:func:`dtwin_jax.output_only.accelerometers.score_spread`); added to `V`.
+    - `linear`: `(q, K)` or `(K,)` bool (or False): the columns of the nominal model's linear
+      terms, every displacement and velocity (:func:`linear_columns`), tested together as well.
 
     **Returns:** a :class:`ChangeTest`; under "the window follows the twin's linear model"
     `p_all` is uniform on (0, 1), and `p_term` and `p_value` are at least as large as a
@@ -145,5 +161,13 @@ def window_test(twin: SuffStats, window: SuffStats, dispersion=1.0, spread=0.0) 
     q, K = jnp.shape(twin.xty)
     dispersion = jnp.broadcast_to(jnp.asarray(dispersion, jnp.float64), (q,))
     spread = jnp.broadcast_to(jnp.asarray(spread, jnp.float64), (q, K, K))
+    linear = jnp.broadcast_to(jnp.asarray(linear, jnp.float64), (q, K))
     args = [jnp.asarray(a, jnp.float64) for a in (*twin, *window)]
-    return ChangeTest(*jax.vmap(_one)(*args, spread, dispersion))
+    return ChangeTest(*jax.vmap(_one)(*args, spread, dispersion, linear))
+
+
+def linear_columns(names, nominal) -> np.ndarray:
+    """`(K,)` bool: which of the library's term `names` are the nominal model's linear terms
+    (`x1 .. x2d`, every displacement and velocity)."""
+    linear = set(nominal.state_names[:2 * nominal.d])
+    return np.array([name in linear for name in names], dtype=bool)

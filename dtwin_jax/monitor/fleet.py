@@ -25,7 +25,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from dtwin_jax.input_output.targets import input_output_stats
 from dtwin_jax.library import Library
-from dtwin_jax.monitor.change import overdispersion, window_test
+from dtwin_jax.monitor.change import linear_columns, overdispersion, window_test
 from dtwin_jax.monitor.service import LOOKBACK
 from dtwin_jax.sampler import SamplerSettings, SuffStats, sample
 from dtwin_jax.sampler.driver import batch_map, default_batch_method
@@ -68,14 +68,14 @@ def fleet_init(num_structures: int, num_equations: int, num_terms: int) -> Fleet
                       jnp.zeros((F, q), jnp.float64), jnp.zeros((F, q), jnp.float64), jnp.ones((F,), bool))
 
 
-def _alarm_p(st: FleetState, window: SuffStats, dispersion):
+def _alarm_p(st: FleetState, window: SuffStats, dispersion, linear):
     """:func:`~dtwin_jax.monitor.service.combined_p_value` of the pooled tests of one
     structure (:func:`~dtwin_jax.monitor.service.pooled_tests`), jittable: ``(p, p_window,
     the window's own unscaled T (q,))``."""
     cums = jax.tree.map(lambda w, r: jnp.concatenate([w[None], w[None] + jnp.cumsum(r, axis=0)]), window,
                         st.recent_windows)
     twins = jax.tree.map(lambda b, r: jnp.concatenate([b[None], r]), st.stats, st.recent_twins)
-    tests = jax.vmap(window_test, in_axes=(0, 0, None))(twins, cums, dispersion)
+    tests = jax.vmap(window_test, in_axes=(0, 0, None, None, None))(twins, cums, dispersion, 0.0, linear)
     q = tests.p_value.shape[-1]
     p = jnp.minimum(1.0, jnp.min(tests.p_value, axis=-1) * q)  # (P + 1,)
     valid = jnp.arange(p.size) <= st.recent_count
@@ -106,7 +106,8 @@ def fleet_step(state: FleetState, x, u, xdot, nominal, keys, *, lib: Library, dt
     def one(st: FleetState, x, u, xdot, nominal, key):
         window = input_output_stats(nominal, lib, dt, x, u, xdot, half_width)
         q = window.n.shape[0]
-        p_value, p_window, ratio = _alarm_p(st, window, overdispersion(st.ratio_sum, st.ratio_count))
+        linear = linear_columns(lib.names, nominal)
+        p_value, p_window, ratio = _alarm_p(st, window, overdispersion(st.ratio_sum, st.ratio_count), linear)
         p_value, p_window = jnp.where(st.fresh, 1.0, p_value), jnp.where(st.fresh, 1.0, p_window)
         alarm = (p_value < false_alarm) & ~st.fresh
         restart = alarm | st.fresh

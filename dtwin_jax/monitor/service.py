@@ -21,7 +21,7 @@ import numpy as np
 
 from dtwin_jax.errors import DataError
 from dtwin_jax.io.twin_files import MAX_RECENT, RECENT_KINDS, SPREAD_KIND
-from dtwin_jax.monitor.change import overdispersion, window_statistics, window_test
+from dtwin_jax.monitor.change import linear_columns, overdispersion, window_statistics, window_test
 from dtwin_jax.sampler import SuffStats
 from dtwin_jax.update.from_data import update_from_data
 from dtwin_jax.update.lifecycle import arrays_sha256
@@ -73,19 +73,19 @@ def _stats(s) -> SuffStats:
 
 
 def pooled_tests(twin: SuffStats, window: SuffStats, recent: list[tuple[SuffStats, SuffStats, SuffStats]],
-                 dispersion=1.0, spread: SuffStats | None = None) -> list:
+                 dispersion=1.0, spread: SuffStats | None = None, linear=False) -> list:
     """The window against ``twin`` (the twin's drift statistics before it), then the window
     pooled with the ``1 .. len(recent)`` windows before it against the twin before the oldest
     of those: one :class:`~dtwin_jax.monitor.change.ChangeTest` each, with ``dispersion``
     (:func:`~dtwin_jax.monitor.change.overdispersion`) and the windows' score spreads
     (``spread`` this window's, :func:`window_spread`, and each recent window's third item;
-    None: none)."""
+    None: none) and the nominal's ``linear`` columns (:func:`~dtwin_jax.monitor.change.linear_columns`)."""
     omega = 0.0 if spread is None else np.asarray(spread.gram)
-    tests, pooled = [window_test(twin, window, dispersion, omega)], window
+    tests, pooled = [window_test(twin, window, dispersion, omega, linear)], window
     for w, before, s in recent:
         pooled = SuffStats(*(np.asarray(x) + np.asarray(y) for x, y in zip(pooled, w)))
         omega = omega if s is None else omega + np.asarray(s.gram)
-        tests.append(window_test(before, pooled, dispersion, omega))
+        tests.append(window_test(before, pooled, dispersion, omega, linear))
     return tests
 
 
@@ -269,7 +269,8 @@ class Monitor:
         ``dropped_terms``, ``changed_terms``, ``seconds``, ``equations``, and ``p_value`` (the
         alarm's: :func:`combined_p_value`), ``p_window`` (this window's alone, over every drift
         equation), ``pooled`` (the window alone, then pooled with 1, 2, ... windows before
-        it), ``test`` (the window alone: each equation's statistic, degrees of freedom and p-values),
+        it), ``test`` (the window alone: each equation's statistic, degrees of freedom and
+        p-values: the whole library's, the largest term's, the linear terms'),
         ``restarted``, ``window_estimates`` (:func:`window_estimates`) and ``data_sha256``
         (:func:`data_fingerprint`).
         """
@@ -282,9 +283,11 @@ class Monitor:
         timeline = self.timeline
         dispersion = timeline_dispersion(timeline, int(np.shape(twin.n)[0]))
         spread = window_spread(after)
-        tests = pooled_tests(twin, window, recent, dispersion, spread)
+        drift = [e for e in before.equations if e.kind == "drift"]
+        linear = np.stack([linear_columns(e.names, before.nominal) for e in drift])
+        tests = pooled_tests(twin, window, recent, dispersion, spread, linear)
         p_combined, p_window = combined_p_value(tests)
-        stat, df, p_all, term, z, p_term, p = (np.asarray(a) for a in tests[0])
+        stat, df, p_all, term, z, p_term, p_linear, p = (np.asarray(a) for a in tests[0])
         alarm = p_combined < self.false_alarm
         new = dropped = changed = []
         if alarm:  # the older data no longer describe the structure: start again from this window
@@ -294,7 +297,6 @@ class Monitor:
             new, dropped, changed = alarm_reasons(before, after)
         recent = [] if alarm else [(window, twin, spread)] + recent[:LOOKBACK - 2]
         after = dataclasses.replace(after, statistics=_with_recent(after.statistics, recent))
-        drift = [e for e in before.equations if e.kind == "drift"]
         record = {
             "index": len(timeline),
             "source": str(source),
@@ -311,7 +313,7 @@ class Monitor:
             "test": [{"state": e.state, "statistic": float(stat[j]), "df": int(df[j]),
                       "dispersion": float(dispersion[j]), "p_all": float(p_all[j]),
                       "term": e.names[int(term[j])], "z": float(z[j]), "p_term": float(p_term[j]),
-                      "p_value": float(p[j])} for j, e in enumerate(drift)],
+                      "p_linear": float(p_linear[j]), "p_value": float(p[j])} for j, e in enumerate(drift)],
             "restarted": bool(alarm),
             "window_estimates": window_estimates(after, window, _regressed(before, timeline)),
             "data_sha256": data_fingerprint(data),
