@@ -68,7 +68,7 @@ class ChangeTest(NamedTuple):
     z: jax.Array  # (q,) that t_k
     p_term: jax.Array  # (q,) min(1, K P(|t| > |t_k|))
     p_linear: jax.Array  # (q,) P(F > T_L) of the linear terms' score (1 where none is marked)
-    p_value: jax.Array  # (q,) min(1, 3 min(p_all, p_term, p_linear)); 2 and two tests without linear terms
+    p_value: jax.Array  # (q,) min(1, 3 min(p_all, p_term, p_linear)); min(1, 2 min(p_all, p_term)) with no linear column
 
 
 def window_statistics(after, before, forget: float) -> SuffStats:
@@ -79,17 +79,22 @@ def window_statistics(after, before, forget: float) -> SuffStats:
     return SuffStats(*(np.asarray(a, dtype=float) - forget * np.asarray(b, dtype=float) for a, b in zip(new, old)))
 
 
+def _eigen(A):
+    """`(w, U, keep)`: the eigendecomposition of a symmetric positive semi-definite `A` and
+    the eigenvalues outside its null space."""
+    w, U = jnp.linalg.eigh(0.5 * (A + A.T))
+    return w, U, w > _RANK_TOL * jnp.maximum(jnp.max(w), jnp.finfo(A.dtype).tiny)
+
+
 def _pinv(A):
     """`(A^+, rank A)` of a symmetric positive semi-definite `A`."""
-    w, U = jnp.linalg.eigh(0.5 * (A + A.T))
-    keep = w > _RANK_TOL * jnp.maximum(jnp.max(w), jnp.finfo(A.dtype).tiny)
+    w, U, keep = _eigen(A)
     return (U * jnp.where(keep, 1.0 / jnp.where(keep, w, 1.0), 0.0)) @ U.T, jnp.sum(keep)
 
 
 def _f_test(V, g, dof):
     """`(T, rank V, P(F(rank V, dof) > T))` of `T = g^T V^+ g / rank V`."""
-    w, U = jnp.linalg.eigh(0.5 * (V + V.T))
-    keep = w > _RANK_TOL * jnp.maximum(jnp.max(w), jnp.finfo(V.dtype).tiny)
+    w, U, keep = _eigen(V)
     z = jnp.where(keep, U.T @ g, 0.0) / jnp.sqrt(jnp.where(keep, w, 1.0))
     df = jnp.sum(keep)
     T = jnp.sum(z**2) / jnp.maximum(df, 1)

@@ -103,10 +103,11 @@ def fleet_step(state: FleetState, x, u, xdot, nominal, keys, *, lib: Library, dt
     **Returns:** ``(state after the window, FleetReport)``. Pure and jittable.
     """
 
+    linear = linear_columns(lib.names, nominal)  # static: the same columns for every structure
+
     def one(st: FleetState, x, u, xdot, nominal, key):
         window = input_output_stats(nominal, lib, dt, x, u, xdot, half_width)
         q = window.n.shape[0]
-        linear = linear_columns(lib.names, nominal)
         p_value, p_window, ratio = _alarm_p(st, window, overdispersion(st.ratio_sum, st.ratio_count), linear)
         p_value, p_window = jnp.where(st.fresh, 1.0, p_value), jnp.where(st.fresh, 1.0, p_window)
         alarm = (p_value < false_alarm) & ~st.fresh

@@ -21,7 +21,12 @@ import numpy as np
 
 from dtwin_jax.errors import DataError
 from dtwin_jax.io.twin_files import MAX_RECENT, RECENT_KINDS, SPREAD_KIND
-from dtwin_jax.monitor.change import linear_columns, overdispersion, window_statistics, window_test
+from dtwin_jax.monitor.change import (
+    linear_columns,
+    overdispersion,
+    window_statistics,
+    window_test,
+)
 from dtwin_jax.sampler import SuffStats
 from dtwin_jax.update.from_data import update_from_data
 from dtwin_jax.update.lifecycle import arrays_sha256
