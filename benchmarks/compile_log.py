@@ -31,6 +31,9 @@ def pytest_configure(config):
         return
     jax.config.update("jax_log_compiles", True)
     out = open(f"{os.environ['COMPILE_LOG']}.{os.environ.get('PYTEST_XDIST_WORKER', 'main')}", "a")
+    # Apart, so the timing rows keep their five columns: what each compiled program was
+    # keyed on (its argument shapes), to see why a program compiles again.
+    shapes = open(f"{os.environ['COMPILE_LOG']}.{os.environ.get('PYTEST_XDIST_WORKER', 'main')}.shapes", "a")
 
     phases = (("trace", r"Finished tracing (.*) for jit in ([0-9.e-]+) sec"),
               ("lower", r"Finished jaxpr to MLIR module conversion (.*) in ([0-9.e-]+) sec"),
@@ -39,6 +42,11 @@ def pytest_configure(config):
     class Keep(logging.Handler):
         def emit(self, record):
             message = record.getMessage()
+            if message.startswith("Compiling ") and " with global shapes and types " in message:
+                head, rest = message[len("Compiling "):].split(" with global shapes and types ", 1)
+                shapes.write(f"{head}\t{_current[0]}\t{_call_site()}\t{rest.split('. Argument mapping')[0]}\n")
+                shapes.flush()
+                return
             if message.startswith("Persistent compilation cache hit"):
                 out.write(f"0\thit\t{message.split(chr(39))[1]}\t{_current[0]}\t{_call_site()}\n")
                 return
@@ -50,7 +58,7 @@ def pytest_configure(config):
                     return
 
     keep = Keep(level=logging.WARNING)  # jax_log_compiles logs all of these at WARNING
-    for name in ("jax._src.dispatch", "jax._src.compiler"):
+    for name in ("jax._src.dispatch", "jax._src.compiler", "jax._src.interpreters.pxla"):
         logging.getLogger(name).addHandler(keep)
 
 
@@ -86,7 +94,7 @@ def main():
     p.add_argument("--top", type=int, default=25)
     a = p.parse_args()
     rows = []
-    for f in glob.glob(a.log + ".*"):
+    for f in (f for f in glob.glob(a.log + ".*") if not f.endswith(".shapes")):
         hit = False
         for line in open(f):
             row = line.rstrip("\n").split("\t")

@@ -24,6 +24,7 @@ code; nothing here calls `sympify`.
 import functools
 import itertools
 import re
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -129,6 +130,81 @@ class Library(eqx.Module):
                 names.extend(self.names[start + k] for k in sel)
             start += len(idx)
         return Library(tuple(names), self.num_states, self.num_inputs, self.spec, tuple(blocks))
+
+
+class TermTable(NamedTuple):
+    """A library's terms as arrays (data, not program structure): one compiled program
+    evaluates any set of terms of the same size (:func:`term_table`, :func:`eval_terms`).
+
+    **Fields:**
+
+    - `family`: `(k,)` int, each term's family, an index into :data:`FAMILIES`.
+    - `exponents`: `(k, m)` int, a `poly` term's monomial exponents (zeros otherwise).
+    - `index`: `(k, 2)` int, the state (or, for `input`, input) indices `i, j` of the others.
+    - `powers`: `(P + 1,)` the powers `0..P` evaluated for the monomials: its length is
+      the program's (static), the largest exponent's size class.
+
+    Rows past the library's terms are padding: the monomial `1`, which a zero coefficient
+    multiplies.
+    """
+
+    family: jax.Array
+    exponents: jax.Array
+    index: jax.Array
+    powers: jax.Array
+
+
+# A table's rows and largest power are rounded up to these (one program per class).
+TABLE_SIZES = (4, 8, 16, 32, 64, 128, 256)
+_POWER_SIZES = (3, 6)
+
+
+def term_table(lib: Library) -> TermTable:
+    """``lib``'s terms as a :class:`TermTable`, padded to the next of :data:`TABLE_SIZES`
+    rows (the library's own size above them), the powers to 3, 6 or the largest exponent."""
+    size = next((s for s in TABLE_SIZES if s >= lib.K), lib.K)
+    family = np.zeros(size, dtype=np.int32)
+    exponents = np.zeros((size, lib.num_states), dtype=np.int32)
+    index = np.zeros((size, 2), dtype=np.int32)
+    row = 0
+    for name, idx in lib.blocks:
+        for t in idx:
+            family[row] = FAMILIES.index(name)
+            if name == "poly":
+                exponents[row] = t
+            else:
+                index[row] = (t[0], t[-1])
+            row += 1
+    top = int(exponents.max(initial=1))
+    P = next((p for p in _POWER_SIZES if p >= top), top)
+    return TermTable(jnp.asarray(family), jnp.asarray(exponents), jnp.asarray(index), jnp.arange(P + 1))
+
+
+def eval_terms(table: TermTable, x, u=None):
+    """The table's terms at `x (..., m)` and `u (..., n)` (None: no inputs), `(..., k)`:
+    the same numbers as the library's design matrix (unsmoothed). Every family is evaluated
+    at every row and the row's own selected (the others' arguments are replaced by zero
+    first, so an exponential no row uses cannot overflow into a gradient)."""
+    code = {name: FAMILIES.index(name) for name in FAMILIES}
+    f, i, j = table.family, table.index[:, 0], table.index[:, 1]
+    P = table.powers.shape[0] - 1
+    powers = [jnp.ones_like(x), x]
+    for _ in range(P - 1):
+        powers.append(powers[-1] * x)
+    powers = jnp.stack(powers, axis=-1)  # (..., m, P + 1)
+    m = x.shape[-1]
+    values = jnp.prod(powers[..., np.arange(m)[None, :], table.exponents], axis=-1)
+    on_input = f == code["input"]
+    xi, xj = x[..., jnp.where(on_input, 0, i)], x[..., j]
+    exp_i = jnp.exp(-jnp.where((f == code["exp"]) | (f == code["expx"]), xi, 0.0))
+    exp_ij = jnp.exp(-jnp.where(f == code["expxx"], xi * xj, 0.0))
+    others = {"sign": jnp.sign(xi), "abs": jnp.abs(xi), "xabs": xi * jnp.abs(xj), "exp": exp_i, "expx": exp_i * xj,
+              "expxx": exp_ij, "sin": jnp.sin(xi), "cos": jnp.cos(xi)}
+    if u is not None and u.shape[-1] > 0:
+        others["input"] = u[..., jnp.where(on_input, i, 0)]
+    for name, value in others.items():
+        values = jnp.where(f == code[name], value, values)
+    return values
 
 
 # Jitted so eager calls compile once per library and shape, not once per primitive.

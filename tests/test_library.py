@@ -16,8 +16,10 @@ from dtwin_jax.library import (
     check_columns,
     column_scales,
     default_library,
+    eval_terms,
     parse_library,
     symbols,
+    term_table,
     to_sympy,
 )
 
@@ -137,6 +139,34 @@ def test_jit_vmap_single():
     # Gradients (used inside ODE right-hand sides) are finite away from the kinks.
     g = jax.jacfwd(lib.eval_single)(jnp.array([0.3, -0.7]), jnp.array([0.2]))
     assert g.shape == (lib.K, 2) and np.isfinite(g).all()
+
+
+@pytest.mark.parametrize("spec, m, n", [(DEFAULT_LIBRARY + ",expx", 3, 2), ("poly:3,sign,abs,xabs", 2, 0),
+                                         ("terms:x2**7;exp(-x1)*x2;u1", 2, 1)])
+def test_the_term_table_evaluates_the_design_matrix_of_any_subset(spec, m, n):
+    """The library as data gives the design matrix's numbers (to rounding: XLA may fuse a
+    product differently), for the whole library and for subsets, with every padding row the
+    constant 1; subsets of one size class share the table's shapes (one program)."""
+    x, u = _data(m, n, N=100, seed=2)
+    lib = parse_library(spec, m, n)
+    rng = np.random.default_rng(3)
+    shapes = set()
+    for keep in [np.ones(lib.K, bool)] + [rng.random(lib.K) < p for p in (0.1, 0.3, 0.5)]:
+        sub = lib.subset(keep)
+        table = term_table(sub)
+        size = table.family.shape[0]
+        assert size == next((s for s in (4, 8, 16, 32, 64, 128, 256) if s >= sub.K), sub.K)
+        got = np.asarray(eval_terms(table, jnp.asarray(x), jnp.asarray(u)))
+        np.testing.assert_allclose(got[:, : sub.K], np.asarray(sub(x, u if sub.uses_inputs else None)),
+                                   rtol=1e-15, atol=0)
+        np.testing.assert_array_equal(got[:, sub.K :], 1.0)
+        if sub.K <= 4:  # one program per (rows, largest power) class
+            shapes.add(jax.tree.map(np.shape, table))
+    assert len(shapes) <= len({s.powers for s in shapes})
+    # An exponential that no row selects never overflows into a gradient.
+    only_poly = term_table(parse_library("poly:2", 2, 0))
+    g = jax.jacfwd(lambda z: eval_terms(only_poly, z))(jnp.array([-800.0, 3.0]))
+    assert np.isfinite(np.asarray(g)).all()
 
 
 def test_monomial_gradients_at_zero():

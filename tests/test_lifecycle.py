@@ -82,6 +82,31 @@ def test_prediction_simulates_only_the_terms_some_draw_uses(saved):
         np.testing.assert_allclose(np.asarray(fast[k]), np.asarray(whole[k]), rtol=1e-9, atol=1e-12)
 
 
+def test_twins_with_different_terms_share_one_simulation_program(lowered_programs):
+    """The solver's program depends on the number of terms' size class, not on which terms
+    (a monitored twin whose selection changes compiles nothing new); the paths equal the
+    library twin's simulated term by term."""
+    from dtwin_jax.library import parse_library
+    from dtwin_jax.models.prediction import UpdatedTwin, library_as_data, used_terms
+
+    nominal = systems.example1().system.nominal
+    lib = parse_library("poly:3,input", 2, 1)
+    t, u = np.arange(300) * 1e-3, np.random.default_rng(0).normal(size=(300, 1)) * 20.0
+    for chosen in (("x1**3",), ("x1**2", "x2"), ("x1*x2**2", "x2**3", "u1")):
+        coef = np.zeros((2, 1, lib.K))
+        for k, name in enumerate(chosen):
+            coef[:, 0, lib.names.index(name)] = [-50.0 / (k + 1), -55.0 / (k + 1)]
+        twins = UpdatedTwin(nominal, lib, (1,), jax.numpy.asarray(coef))
+        pred = predict(twins, np.array([0.01, 0.0]), t, u)
+        # The same draws simulated one by one with the library evaluated as before.
+        one = UpdatedTwin(nominal, lib, (1,), jax.numpy.asarray(coef[1]))
+        x, _ = systems.simulate(one, np.array([0.01, 0.0]), t, u, rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(np.asarray(pred["paths"][1]), np.asarray(x), rtol=0, atol=1e-9)
+        assert library_as_data(used_terms(twins)).terms.family.shape == (4,)
+    paths = [p for p in lowered_programs if p[1] == "jit(_paths)"]
+    assert len(paths) <= 1, paths
+
+
 def test_a_twin_with_no_term_in_any_draw_predicts_the_nominal_model():
     from dtwin_jax.library import parse_library
     from dtwin_jax.models.prediction import UpdatedTwin

@@ -20,8 +20,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dtwin_jax._compile.keys import strong_jit
 from dtwin_jax.errors import DataError
-from dtwin_jax.library import Library, parse_library
+from dtwin_jax.library import Library, TermTable, eval_terms, parse_library, term_table
 from dtwin_jax.models import systems
 from dtwin_jax.models.systems import LinearSecondOrder
 from dtwin_jax.resources import check_posterior_draws, check_prediction
@@ -61,6 +62,8 @@ class UpdatedTwin(eqx.Module):
     every state in that data (`preprocessing["state_range"]`), which bounds a prediction
     (:func:`divergence_bounds`), or None. `model_error_sd (m,)`: the twin's free-run error
     on that data (:mod:`dtwin_jax.model_error`), added to a prediction's band, or None.
+    `terms`: None, or the drift library as data (:func:`library_as_data`), which the
+    coefficients' columns then follow.
     """
 
     nominal: LinearSecondOrder
@@ -72,10 +75,12 @@ class UpdatedTwin(eqx.Module):
     interpolation: str = eqx.field(static=True, default="held")
     state_range: jax.Array | None = None
     model_error_sd: tuple[float, ...] | None = eqx.field(static=True, default=None)
+    terms: TermTable | None = None
 
     def perturbation(self, x, u):
         """Discovered extra rate `(m,)` at one sample `x (m,)`, `u (n,)`."""
-        h = jnp.asarray(self.coefficients) @ self.library.eval_single(x, u)
+        values = self.library.eval_single(x, u) if self.terms is None else eval_terms(self.terms, x, u)
+        h = jnp.asarray(self.coefficients) @ values
         return jnp.zeros(self.nominal.m, h.dtype).at[jnp.asarray(self.regressed)].set(h)
 
     def rate(self, x, u):
@@ -196,6 +201,24 @@ def used_terms(twins: UpdatedTwin) -> UpdatedTwin:
     return dataclasses.replace(twins, library=twins.library.subset(used), coefficients=jnp.asarray(coef[..., used]))
 
 
+def library_as_data(twins: UpdatedTwin) -> UpdatedTwin:
+    """`twins` with the drift library as data (:func:`~dtwin_jax.library.term_table`) and
+    the coefficients padded with zeros to the table's size class: the same rate, and a
+    solver program that depends on that size class alone, not on which terms (a monitored
+    structure's twin compiles its simulation once, whatever its selection becomes). Traced
+    coefficients: unchanged."""
+    try:
+        coef = np.asarray(twins.coefficients)
+    except jax.errors.TracerArrayConversionError:
+        return twins
+    if twins.terms is not None:
+        return twins
+    table = term_table(twins.library)
+    coef = np.concatenate([coef, np.zeros(coef.shape[:-1] + (table.family.shape[0] - coef.shape[-1],))], axis=-1)
+    blank = Library((), twins.library.num_states, twins.library.num_inputs, "", ())
+    return dataclasses.replace(twins, library=blank, terms=table, coefficients=jnp.asarray(coef))
+
+
 def is_nonsmooth(twins: UpdatedTwin) -> bool:
     """True when a term of a non-smooth family (:data:`systems.NONSMOOTH_FAMILIES`: `sign`,
     `Abs`, `x*Abs`) is selected in some draw of `twins` (any such term in the library when
@@ -254,7 +277,7 @@ def divergence_bounds(twins: UpdatedTwin, x0, u=None) -> tuple[jax.Array, jax.Ar
     return -half, half
 
 
-@eqx.filter_jit
+@strong_jit
 def _paths(twins: UpdatedTwin, x0, t, u, keys, lower, upper, substeps):
     """`paths (S, N, m)`, `status (S,)` and `stop_time (S,)` of every draw."""
     if twins.stochastic:
@@ -319,6 +342,9 @@ def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = 
     S = jnp.shape(twins.coefficients)[0]
     check_prediction(S, np.shape(t)[0], twins.nominal.m, option="draws")
     twins = used_terms(twins)
+    # Not part of the solve: a static field in the program's key would compile one program
+    # per fitted twin.
+    error_sd, twins = twins.model_error_sd, dataclasses.replace(twins, model_error_sd=None)
     t = jnp.asarray(t, dtype=float)
     x0 = jnp.asarray(x0, dtype=float)
     if twins.stochastic:
@@ -334,6 +360,7 @@ def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = 
     lower, upper = divergence_bounds(twins, x0, u)
     if substeps is None and not twins.stochastic and is_nonsmooth(twins):
         substeps = fixed_substeps(twins.nominal, t)
+    twins = library_as_data(twins)
     size = _chunks(S, progress)
     if size >= S:
         paths, status, stop = _paths(twins, x0, t, u, keys, lower, upper, substeps)
@@ -351,8 +378,8 @@ def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = 
                 tick(min(size, S - start))
         paths, status, stop = (jnp.concatenate(p) for p in zip(*parts))
     out = {"t": t, **_summary(paths, status), "status": status, "stop_time": stop, "warnings": []}
-    if model_error and twins.model_error_sd is not None:
-        out = with_model_error(out, jnp.asarray(twins.model_error_sd))
+    if model_error and error_sd is not None:
+        out = with_model_error(out, jnp.asarray(error_sd))
     if not isinstance(status, jax.core.Tracer):
         message = failure_message(np.asarray(status), np.asarray(stop))
         if message and np.sum(np.asarray(status) != systems.OK) > max_failed * S:

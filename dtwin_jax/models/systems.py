@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PyTree
 
+from dtwin_jax._compile.keys import strong_jit
 from dtwin_jax.errors import DataError
 from dtwin_jax.linalg import mass_solve
 from dtwin_jax.resources import check_nominal
@@ -412,7 +413,7 @@ def _check_shapes(t, x0, u):
     return t, x0, u
 
 
-@eqx.filter_jit
+@strong_jit
 def simulate(
     system: PerturbedSystem | LinearSecondOrder,
     x0: Float[Array, " m"],
@@ -566,7 +567,7 @@ def _check_sde(t, x0):
     return t, x0
 
 
-@eqx.filter_jit
+@strong_jit
 def simulate_sde(
     system: PerturbedSystem | LinearSecondOrder,
     x0: Float[Array, " m"],
