@@ -98,11 +98,11 @@ def test_twins_with_different_terms_share_one_simulation_program(lowered_program
             coef[:, 0, lib.names.index(name)] = [-50.0 / (k + 1), -55.0 / (k + 1)]
         twins = UpdatedTwin(nominal, lib, (1,), jax.numpy.asarray(coef))
         pred = predict(twins, np.array([0.01, 0.0]), t, u)
-        # The same draws simulated one by one with the library evaluated as before.
-        one = UpdatedTwin(nominal, lib, (1,), jax.numpy.asarray(coef[1]))
-        x, _ = systems.simulate(one, np.array([0.01, 0.0]), t, u, rtol=1e-8, atol=1e-10)
-        np.testing.assert_allclose(np.asarray(pred["paths"][1]), np.asarray(x), rtol=0, atol=1e-9)
         assert library_as_data(used_terms(twins)).terms.family.shape == (4,)
+    # The last draw simulated alone with the library evaluated as before: the same path.
+    one = UpdatedTwin(nominal, lib, (1,), jax.numpy.asarray(coef[1]))
+    x, _ = systems.simulate(one, np.array([0.01, 0.0]), t, u, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(pred["paths"][1]), np.asarray(x), rtol=0, atol=1e-9)
     paths = [p for p in lowered_programs if p[1] == "jit(_paths)"]
     assert len(paths) <= 1, paths
 
