@@ -181,10 +181,11 @@ def term_table(lib: Library) -> TermTable:
 
 
 def eval_terms(table: TermTable, x, u=None):
-    """The table's terms at `x (..., m)` and `u (..., n)` (None: no inputs), `(..., k)`:
-    the same numbers as the library's design matrix (unsmoothed). Every family is evaluated
-    at every row and the row's own selected (the others' arguments are replaced by zero
-    first, so an exponential no row uses cannot overflow into a gradient)."""
+    """The table's terms at `x (..., m)` and `u (..., n)`, `(..., k)`: the library's design
+    matrix (unsmoothed) to rounding. `u` None (no inputs) leaves `input` rows at 1: pass `u`
+    whenever the table has them. Every family is evaluated at every row and the row's own
+    selected (the others' arguments are replaced by zero first, so an exponential that no
+    row uses cannot overflow into a gradient)."""
     code = {name: FAMILIES.index(name) for name in FAMILIES}
     f, i, j = table.family, table.index[:, 0], table.index[:, 1]
     P = table.powers.shape[0] - 1
