@@ -30,10 +30,11 @@ def pytest_configure(config):
     if not os.environ.get("COMPILE_LOG"):
         return
     jax.config.update("jax_log_compiles", True)
-    out = open(f"{os.environ['COMPILE_LOG']}.{os.environ.get('PYTEST_XDIST_WORKER', 'main')}", "a")
+    prefix = f"{os.environ['COMPILE_LOG']}.{os.environ.get('PYTEST_XDIST_WORKER', 'main')}"
+    out = open(prefix, "a")
     # Apart, so the timing rows keep their five columns: what each compiled program was
     # keyed on (its argument shapes), to see why a program compiles again.
-    shapes = open(f"{os.environ['COMPILE_LOG']}.{os.environ.get('PYTEST_XDIST_WORKER', 'main')}.shapes", "a")
+    shapes = open(prefix + ".shapes", "a")
 
     phases = (("trace", r"Finished tracing (.*) for jit in ([0-9.e-]+) sec"),
               ("lower", r"Finished jaxpr to MLIR module conversion (.*) in ([0-9.e-]+) sec"),

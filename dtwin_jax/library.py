@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 import sympy
 
+from dtwin_jax._compile.buckets import TABLE_BUCKETS, bucket
 from dtwin_jax.errors import DataError
 from dtwin_jax.expressions import parse_term
 from dtwin_jax.resources import MAX_TERMS, check_terms, count_terms  # noqa: F401 (count_terms: public here too)
@@ -154,15 +155,15 @@ class TermTable(NamedTuple):
     powers: jax.Array
 
 
-# A table's rows and largest power are rounded up to these (one program per class).
-TABLE_SIZES = (4, 8, 16, 32, 64, 128, 256)
+# A table's largest power is rounded up to these (one program per class).
 _POWER_SIZES = (3, 6)
 
 
 def term_table(lib: Library) -> TermTable:
-    """``lib``'s terms as a :class:`TermTable`, padded to the next of :data:`TABLE_SIZES`
-    rows (the library's own size above them), the powers to 3, 6 or the largest exponent."""
-    size = next((s for s in TABLE_SIZES if s >= lib.K), lib.K)
+    """``lib``'s terms as a :class:`TermTable`, padded to its size class
+    (:data:`~dtwin_jax._compile.buckets.TABLE_BUCKETS`: 4, 8, 16, ... 256 rows, the library's
+    own size above them), the powers to 3, 6 or the largest exponent."""
+    size = bucket(lib.K, TABLE_BUCKETS)
     family = np.zeros(size, dtype=np.int32)
     exponents = np.zeros((size, lib.num_states), dtype=np.int32)
     index = np.zeros((size, 2), dtype=np.int32)

@@ -8,16 +8,19 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-__all__ = ["BUCKETS", "bucket", "pad_stats", "unpad_trace"]
+__all__ = ["BUCKETS", "TABLE_BUCKETS", "bucket", "pad_stats", "unpad_trace"]
 
 # Above the largest bucket a library keeps its size: padding it would cost more sweeps'
 # time than its one compilation.
 BUCKETS = (16, 32, 64, 128, 256)
+# A simulated twin's term table (dtwin_jax.library.term_table): most twins use a handful of
+# terms, each row evaluated at every solver stage, so the classes start smaller.
+TABLE_BUCKETS = (4, 8) + BUCKETS
 
 
-def bucket(K: int) -> int:
-    """The padded size of a K-term library."""
-    return next((b for b in BUCKETS if K <= b), K)
+def bucket(K: int, sizes: tuple[int, ...] = BUCKETS) -> int:
+    """The padded size of a K-term library: the first of ``sizes`` that holds it, else K."""
+    return next((b for b in sizes if K <= b), K)
 
 
 def pad_stats(stats, size: int, xp=jnp):
