@@ -132,13 +132,15 @@ def kinematic_smoother(
         half_width = auto_half_width(nominal, dt, x.shape[0])
     u = None if u is None else jnp.asarray(u)
     hw = int(half_width)
-    return _kinematic_smoother(nominal, float(dt), x, xdot, u, hw)
+    # dt traced, not static: windows cut at other offsets have dt's that differ in the last
+    # bits, and each new value compiled the program again (2.9 s) in a monitor's life.
+    return _kinematic_smoother(nominal, jnp.asarray(dt, dtype=jnp.float64), x, xdot, u, hw)
 
 
 # A new process (the command line) reuses the traced program (dtwin_jax._compile.aot).
-@aot.exported("kinematic_smoother", static_argnums=(1, 5))
+@aot.exported("kinematic_smoother", static_argnums=(5,))
 @eqx.filter_jit
-def _kinematic_smoother(nominal: LinearSecondOrder, dt: float, x, xdot, u, half_width: int):
+def _kinematic_smoother(nominal: LinearSecondOrder, dt, x, xdot, u, half_width: int):
     # Compiled as a whole: run eagerly, the noise fit's loop compiled anew on every call
     # (6 s per 1000-sample record).
     N, m = x.shape
