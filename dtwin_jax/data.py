@@ -72,10 +72,11 @@ def uniform_times(t) -> np.ndarray:
 
     **Returns:**
 
-    ``(N,)`` float64 times from 0 with ``dt = (t[-1] - t[0]) / (N - 1)``. Every step must be
-    within ``STEP_RTOL`` of ``dt``, plus 4 float64 spacings of ``max|t|``: epoch timestamps
-    (``t ~ 1.7e9`` s) are stored to about 2.4e-7 s, which at 10 kHz is 0.24% of a step.
-    Later code sees times from 0, so the size of ``t[0]`` costs no precision there."""
+    ``(N,)`` float64 times from 0 with ``dt = (t[-1] - t[0]) / (N - 1)``, rounded to the
+    shortest decimal within that estimate's rounding error (:func:`_shortest_step`). Every
+    step must be within ``STEP_RTOL`` of ``dt``, plus 4 float64 spacings of ``max|t|``: epoch
+    timestamps (``t ~ 1.7e9`` s) are stored to about 2.4e-7 s, which at 10 kHz is 0.24% of a
+    step. Later code sees times from 0, so the size of ``t[0]`` costs no precision there."""
     t = real_array("'t'", t)
     if t.ndim != 1:
         raise DataError(f"'t' must be one-dimensional, got shape {t.shape}")
@@ -90,7 +91,20 @@ def uniform_times(t) -> np.ndarray:
         raise DataError(
             f"'t' is not uniformly spaced (steps from {dts.min():.6g} to {dts.max():.6g} s)"
         )
-    return np.arange(t.size) * dt
+    return np.arange(t.size) * _shortest_step(dt, 4 * np.spacing(np.max(np.abs(t))) / (t.size - 1))
+
+
+def _shortest_step(dt: float, error: float) -> float:
+    """The decimal with the fewest significant digits within ``error`` (s) of ``dt`` (and 4 of
+    its own float64 spacings). Windows cut from one record at other offsets, or stamped with
+    epoch times, then have the same ``dt`` bit for bit (1 ms, not 0.9999999999999953 ms for
+    one and 1.0000000000000005 ms for another), and the programs keyed on it are reused."""
+    error = float(error) + 4 * float(np.spacing(dt))
+    for digits in range(1, 18):
+        snapped = float(f"{dt:.{digits}g}")
+        if abs(snapped - dt) <= error:
+            return snapped
+    return float(dt)
 
 
 def check_records(

@@ -148,6 +148,13 @@ def test_epoch_timestamps_are_uniform_and_rebased(t0, dt):
     assert rec.t[0] == 0.0 and rec.dt == pytest.approx(dt, rel=rtol)
 
 
+def test_windows_cut_at_any_offset_have_one_step_bit_for_bit():
+    # (t[-1] - t[0]) / (N - 1) takes 6 values a few ulps apart over these 200 windows; the
+    # programs keyed on dt compiled once for each.
+    steps = {float(uniform_times(t0 + k + np.arange(1000) * 1e-3)[1]) for k in range(200) for t0 in (0.0, 1.7e9)}
+    assert steps == {1e-3}
+
+
 def test_printed_timestamps_within_a_percent_of_the_step_pass():
     # 1024 Hz printed to the microsecond: steps 976 and 977 us around 976.5625 us.
     t = np.round(np.arange(500) / 1024, 6)
