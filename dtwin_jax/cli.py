@@ -147,7 +147,7 @@ def _parser() -> argparse.ArgumentParser:
     mo.add_argument("--trend", choices=_TRENDS, default="linear",
                     help="the tracked coefficient's trend: a straight line (default), a parabola, or a drift plus "
                          "a random walk (wiener: damage that grows with random loads, as a crack's)")
-    _add_sampler_args(mo, draws=1000, burn_in=500, chains=2)
+    _add_sampler_args(mo, draws=1000, burn_in=250, chains=2)  # monitor.MONITOR_SETTINGS
 
     demo = sub.add_parser("demo", help="simulate a paper example, update its twin, print and save results")
     demo.add_argument("--example", choices=("example1", "example2", "example3"), default="example1")

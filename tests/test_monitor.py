@@ -294,3 +294,11 @@ def test_monitor_errors_are_one_line_and_keep_what_was_done(files, case, message
         assert len(load_twin(tmp / "twin").history) == 2
     else:
         assert sorted(p.name for p in tmp.iterdir()) == before
+
+
+def test_the_command_line_monitor_samples_as_the_python_monitor_does():
+    from dtwin_jax.cli import _parser
+
+    args = _parser().parse_args(["monitor", "twin", "w1.npz", "--out", "m.json"])
+    assert (args.chains, args.draws, args.burn_in) == (
+        MONITOR_SETTINGS.num_chains, MONITOR_SETTINGS.num_draws, MONITOR_SETTINGS.num_burnin)
