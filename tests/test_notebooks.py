@@ -175,14 +175,16 @@ def _assigned(source: str) -> set[str]:
 
 
 def _text(nb) -> str:
+    """What the notebook printed. One ``print`` can arrive as two stream messages (``kernel
+    prefix:`` then `` /path``), so consecutive stream texts are joined as they are."""
     parts = []
     for cell in nb.cells:
         for out in cell.get("outputs", []):
             if out.output_type == "stream" and out.name == "stdout":
                 parts.append(out.text)
             elif out.output_type in ("execute_result", "display_data"):
-                parts.append(out.data.get("text/plain", ""))
-    return "\n".join(parts)
+                parts.append("\n" + out.data.get("text/plain", "") + "\n")
+    return "".join(parts)
 
 
 def test_every_notebook_has_short_settings():
