@@ -86,12 +86,12 @@ def uniform_times(t) -> np.ndarray:
         raise DataError("'t' contains NaN or infinite values")
     dts = np.diff(t)
     dt = (t[-1] - t[0]) / (t.size - 1)
-    tol = STEP_RTOL * dt + 4 * np.spacing(np.max(np.abs(t)))
-    if not dt > 0 or np.any(dts <= 0) or np.max(np.abs(dts - dt)) > tol:
+    stamp = 4 * np.spacing(np.max(np.abs(t)))  # a stored time's rounding error
+    if not dt > 0 or np.any(dts <= 0) or np.max(np.abs(dts - dt)) > STEP_RTOL * dt + stamp:
         raise DataError(
             f"'t' is not uniformly spaced (steps from {dts.min():.6g} to {dts.max():.6g} s)"
         )
-    return np.arange(t.size) * _shortest_step(dt, 4 * np.spacing(np.max(np.abs(t))) / (t.size - 1))
+    return np.arange(t.size) * _shortest_step(dt, stamp / (t.size - 1))
 
 
 def _shortest_step(dt: float, error: float) -> float:
