@@ -158,10 +158,9 @@ def python3_kernel(tmp_path, monkeypatch):
         "display_name": "Python 3", "language": "python",
     }))
     monkeypatch.setenv("JUPYTER_PATH", str(tmp_path / "jupyter"))
-    monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
-    # The kernels share one compilation cache of their own: their programs are built without
-    # most optimizations, unlike the tests'.
-    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", os.path.join(os.environ["DTWIN_JAX_CACHE"], "notebooks"))
+    # The kernels share the tests' compilation cache (built, as theirs, without most of
+    # XLA's optimizations: tests/conftest.py).
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", os.environ["DTWIN_JAX_CACHE"])
     monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     monkeypatch.delenv("MPLBACKEND", raising=False)
     work = tmp_path / "work"
@@ -194,7 +193,16 @@ def test_every_notebook_has_short_settings():
     assert not missing, f"notebooks without short settings or checks in tests/test_notebooks.py: {missing}"
 
 
-@pytest.mark.parametrize("path", sorted(NOTEBOOKS.glob("*.ipynb")), ids=lambda p: p.stem)
+# One notebook runs by default, all with `pytest -m slow`: each other notebook's pipeline has
+# default-run tests of its own (output-only, prediction and degradation, friction, silverbox).
+DEFAULT_RUN = "framework1_examples.ipynb"
+
+
+def _notebook(path):
+    return pytest.param(path, id=path.stem, marks=() if path.name == DEFAULT_RUN else pytest.mark.slow)
+
+
+@pytest.mark.parametrize("path", [_notebook(p) for p in sorted(NOTEBOOKS.glob("*.ipynb"))])
 def test_notebook_runs_with_short_settings(path, python3_kernel):
     if path.name not in SHORT or path.name not in CHECKS:
         pytest.fail(f"{path.name}: add its short settings to SHORT and its checks to CHECKS")

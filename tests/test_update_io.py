@@ -68,6 +68,7 @@ def test_example3_five_percent_identifiable_degradation_terms():
     check_degradation_forecast(ex, res)
 
 
+@pytest.mark.slow  # examples 1 and 3 (this pipeline) run by default
 def test_example2_five_percent():
     # Exact support. Coefficients: the issue asks for 1%; at 5% noise on the accelerations
     # the posterior std of these collinear cubic monomials is 0.4-2% of the truth, so we
