@@ -55,6 +55,7 @@ def _relative_rms(path, reference):
     return np.sqrt(np.mean((path - reference) ** 2, axis=0)) / np.sqrt(np.mean(reference**2, axis=0))
 
 
+@pytest.mark.slow  # the command line's 25 s friction prediction runs by default (test below)
 def test_friction_twin_predicts_25_s_fast_within_1_percent_of_a_fine_reference():
     twins = _friction_twins(20)
     t, u = _held_input(25.0)
