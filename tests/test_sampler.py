@@ -239,3 +239,23 @@ def test_disagreeing_chains_are_visible_and_greedy_strategy_keeps_chain_keys():
     assert post.pip_per_chain.shape == (2, L.shape[1])
     assert post.pip_chain_spread_max > 0.9 and np.argmax(post.pip_chain_spread) == 4
     assert np.nanmax(post.rhat_gamma()) > 1.5
+
+
+@pytest.mark.parametrize("K", [19, 23])
+def test_a_library_of_17_to_24_terms_samples_in_24_slots_with_the_draws_of_32(K):
+    """Padded to 32 columns, a 19-term library took 32 active-set slots (0.170 s for the
+    monitor's 2 x 1250 sweeps); its model cannot outgrow 19 terms, so 24 slots give the same
+    draws (0.120 s, one pinned core: `taskset -c 0 python benchmarks/sampler_speed.py --slots`)."""
+    from dtwin_jax._compile.buckets import active_slots
+
+    assert [active_slots(k) for k in (1, 16, 17, 24, 25, 32, 33, 256)] == [16, 16, 24, 24, 32, 32, 32, 32]
+    rng = np.random.default_rng(K)
+    L = rng.normal(size=(400, K))
+    y = L[:, :3] @ np.array([1.0, -0.5, 0.2]) + 0.5 * rng.normal(size=400)
+    st = S.suff_stats(L, y)
+    settings = S.SamplerSettings(num_chains=2, num_draws=300, num_burnin=100)
+    default = S.sample_in_chunks(jax.random.key(1), st, settings)
+    wide = S.sample_in_chunks(jax.random.key(1), st, settings, max_active=32)
+    for name in ("gamma", "theta", "sigma2"):
+        np.testing.assert_array_equal(getattr(default, name), getattr(wide, name))
+    assert default.gamma.mean(axis=(0, 1))[:2].min() == 1.0

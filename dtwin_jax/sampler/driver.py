@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dtwin_jax._compile import aot
-from dtwin_jax._compile.buckets import bucket, pad_stats, unpad_trace
+from dtwin_jax._compile.buckets import active_slots, bucket, pad_stats, unpad_trace
 from dtwin_jax._compile.quick_compile import quick_jit
 from dtwin_jax.progress import Bar, tick
 from dtwin_jax.sampler.kernel import (
@@ -99,6 +99,7 @@ def sample(key: jax.Array, stats: SuffStats, settings: SamplerSettings | None = 
     if progress:
         return jax.tree.map(jnp.asarray, sample_in_chunks(key, stats, s, progress=True))
     K = stats.gram.shape[-1]
+    s = _with_slots(s, K)
     scaled, col, ys = standardize(pad_stats(stats, bucket(K)))
     total = s.num_burnin + s.num_draws
     states = starting_states(key, scaled, s.prior, s.p0, s.v_s, s.max_active, s.num_chains, s.init_strategy)
@@ -136,6 +137,7 @@ def sample_in_chunks(key: jax.Array, stats: SuffStats, settings: SamplerSettings
     """
     s = _settings(settings, overrides)
     K = stats.gram.shape[-1]
+    s = _with_slots(s, K)
     padded = pad_stats(SuffStats(*(np.asarray(a, np.float64) for a in stats)), bucket(K), np)
     scaled, col, ys, keys, states = _chunk_setup(key, jax.device_put(padded), s)
     total = s.num_burnin + s.num_draws
@@ -152,6 +154,12 @@ def sample_in_chunks(key: jax.Array, stats: SuffStats, settings: SamplerSettings
     trace = unpad_trace(trace, K)
     return trace._replace(theta=trace.theta * (np.asarray(ys) / np.asarray(col)[:K]),
                           sigma2=trace.sigma2 * float(ys) ** 2)
+
+
+def _with_slots(s: SamplerSettings, K: int) -> SamplerSettings:
+    """``s`` with the default ``max_active`` resolved on the real ``K`` (:func:`active_slots`),
+    before the library is padded."""
+    return s if s.max_active is not None else dataclasses.replace(s, max_active=active_slots(K))
 
 
 def _chunk_setup(key, stats: SuffStats, s: SamplerSettings):
