@@ -67,6 +67,7 @@ def test_shark_keeps_the_stationary_variance_that_euler_maruyama_doubles():
     assert np.var(np.array(acc)) / (0.25 / 4) > 1.6
 
 
+@pytest.mark.slow  # its data and settings run by default through the command line (below), and the long record
 def test_example1_output_only_at_5_percent_noise():
     ex, t, x = _ensemble("example1")
     result = update_output_only(ex.system.nominal, t, x, library=ex.library_output_only, settings=FAST)

@@ -84,6 +84,9 @@ def test_sweep_bad_batch_size_is_a_data_error():
         studies.noise_sweep("example1", [0.05], framework="output-only", batch_size=0, progress=False)
 
 
+# Its parts run by default: output_only_drift_stats and the diffusion statistics against the
+# update (tests/test_output_only.py), the vmapped sampler and summaries in the sweeps above.
+@pytest.mark.slow
 def test_output_only_sweep_small():
     res = studies.noise_sweep("example1", [0.05], replicates=1, framework="output-only", records=20,
                               settings=SETTINGS, seed=0, progress=False)
