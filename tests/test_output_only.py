@@ -80,7 +80,7 @@ def test_example1_output_only_at_5_percent_noise():
     check_output_only_prediction(ex, result)  # measured: 0.8% (nominal 155%), 97% inside the band
 
 
-@pytest.mark.slow  # example 1 (this pipeline) and the derivative tests on example 2 run by default
+@pytest.mark.slow  # the command line on example 1's data (this pipeline) and the derivative tests on example 2 run by default
 def test_example2_output_only_at_5_percent_noise():
     # The velocity noise per sample is ~400 times the Brownian increment here; the
     # pre-averaged quadratic variation is -53% off for x3, the likelihood ~1%.
@@ -97,7 +97,7 @@ def test_example2_output_only_at_5_percent_noise():
     check_output_only_prediction(ex, result, tol=0.02, mean_draws=30, band_draws=0, round_trip=False)
 
 
-@pytest.mark.slow  # example 1 (this pipeline) and the derivative tests on example 3 run by default
+@pytest.mark.slow  # the command line on example 1's data (this pipeline) and the derivative tests on example 3 run by default
 def test_example3_output_only_at_5_percent_noise():
     ex, t, x = _ensemble("example3")
     result = update_output_only(ex.system.nominal, t, x, library=ex.library_output_only, settings=FAST)

@@ -32,7 +32,7 @@ def bucket(K: int, sizes: tuple[int, ...] = BUCKETS) -> int:
 def active_slots(K: int) -> int:
     """The default number of active-set slots for a ``K``-term library (before padding):
     the first of :data:`SLOT_CLASSES` that holds it, at most 32."""
-    return next((r for r in SLOT_CLASSES if K <= r), SLOT_CLASSES[-1])
+    return min(bucket(K, SLOT_CLASSES), SLOT_CLASSES[-1])
 
 
 def pad_stats(stats, size: int, xp=jnp):
