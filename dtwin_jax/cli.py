@@ -202,8 +202,8 @@ def _discover(args) -> int:
     from dtwin_jax.io import load_measurements, load_nominal
     from dtwin_jax.io.twin_folder import locked
 
+    data = load_measurements(args.data)  # first: a file's declared sizes are refused before any model is built
     nominal = load_nominal(args.nominal)
-    data = load_measurements(args.data)
     mode = args.mode or ("input-output" if "u" in data else "output-only")
     # An existing twin (--force) is locked through the run; a new one only while it is written.
     existing = args.save_twin and (Path(args.save_twin) / "twin.json").is_file()

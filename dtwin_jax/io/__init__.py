@@ -13,13 +13,16 @@ import tempfile
 import tomllib
 import zipfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from dtwin_jax.errors import DataError
+from dtwin_jax.errors import DataError, dtype_word
 from dtwin_jax.io.twin_folder import umask
-from dtwin_jax.models.systems import LinearSecondOrder, dtype_word
 from dtwin_jax.resources import check_file_arrays
+
+if TYPE_CHECKING:
+    from dtwin_jax.models.systems import LinearSecondOrder
 
 __all__ = ["load_nominal", "load_measurements", "load_prediction_input", "write_json", "write_nominal", "atomic_path"]
 
@@ -64,6 +67,9 @@ def load_nominal(path) -> LinearSecondOrder:
             raise DataError(f"'F0' in '{path}' is not a numeric vector") from None
         if F0.ndim != 1:
             raise DataError(f"'F0' in '{path}' must be a vector (one force per degree of freedom)")
+    # Here, not at the top: the readers and their refusals stay free of diffrax's import.
+    from dtwin_jax.models.systems import LinearSecondOrder
+
     return LinearSecondOrder.create(
         mats["M"], mats["C"], mats["K"], mats.get("B"), extra_states=extra, F0=F0
     )

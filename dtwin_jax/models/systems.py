@@ -16,7 +16,7 @@ import numpy as np
 from jaxtyping import Array, Float, PyTree
 
 from dtwin_jax._compile.keys import strong_jit
-from dtwin_jax.errors import DataError
+from dtwin_jax.errors import DataError, dtype_word
 from dtwin_jax.linalg import mass_solve
 from dtwin_jax.resources import check_nominal
 
@@ -44,13 +44,6 @@ __all__ = [
 
 
 _MAX_GAIN = 1e150  # largest |M^-1 K|, |M^-1 C|, |M^-1 B|, |M^-1 F0| entry: squares stay finite
-
-
-def dtype_word(dtype) -> str:
-    """A reader's word for a non-real dtype in an error message (``complex``, ``boolean``...)."""
-    dtype = np.dtype(dtype)
-    words = {"c": "complex", "b": "boolean", "U": "string", "S": "bytes", "O": "object", "M": "datetime"}
-    return words.get(dtype.kind, str(dtype))
 
 
 def real_array(label: str, value) -> np.ndarray:
