@@ -24,7 +24,8 @@ os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 # build the same programs (sampler, simulators, smoothers) in many places.
 import jax  # noqa: E402
 
-jax.config.update("jax_disable_most_optimizations", os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] not in ("0", "false"))
+PASSES_OFF = os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] not in ("0", "false")
+jax.config.update("jax_disable_most_optimizations", PASSES_OFF)
 
 _cache = os.environ.get("DTWIN_TEST_JAX_CACHE", os.path.join(os.path.dirname(__file__), "..", ".pytest_cache", "jax"))
 os.environ["DTWIN_JAX_CACHE"] = _cache  # the command line run in-process uses the same
@@ -36,6 +37,29 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 import logging  # noqa: E402
 
 import pytest  # noqa: E402
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """A test marked ``optimized`` (its time goes into running programs, not compiling them)
+    compiles with XLA's passes on, setup and teardown included (a module's fixtures are set up
+    by its first test); its subprocesses too. JAX's in-memory caches ignore the flag, so a
+    program compiled before keeps the passes it was compiled with."""
+    if item.get_closest_marker("optimized") is None:
+        return (yield)
+    os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "0"
+    jax.config.update("jax_disable_most_optimizations", False)
+    try:
+        return (yield)
+    finally:
+        os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1" if PASSES_OFF else "0"
+        jax.config.update("jax_disable_most_optimizations", PASSES_OFF)
+
+
+@pytest.fixture
+def suite_passes_off() -> bool:
+    """Whether the suite compiles without XLA's optimizing passes (unmarked tests)."""
+    return PASSES_OFF
 
 
 @pytest.fixture

@@ -39,6 +39,7 @@ def _max_real_part(nom):
     return lam.real.max(), STABLE_RTOL * np.abs(lam).max()
 
 
+@pytest.mark.optimized
 def test_the_integrating_stage_with_K_and_M_fixed_comes_back_in_physical_units():
     t, y, u = _stage_record()
     nom = identify_linear(t, y, u, ["x1"], fixed={"K": 0, "M": 100})
@@ -49,6 +50,7 @@ def test_the_integrating_stage_with_K_and_M_fixed_comes_back_in_physical_units()
     assert abs(C / 50 - 1) < 0.02 and abs(B - 1) < 0.02 and abs(F0 / 2 - 1) < 0.05
 
 
+@pytest.mark.optimized
 def test_a_fit_that_came_back_unstable_is_clipped_to_a_stable_one_and_says_so():
     # The stage with 20 N Coulomb friction: the free fit was K = -36.9 (per unit mass,
     # -3688 N/m at 100 kg), an eigenvalue at +0.74 1/s, before the clipping.

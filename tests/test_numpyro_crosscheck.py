@@ -145,18 +145,21 @@ def _sd(x):
     return x.std(axis=(0, 1))
 
 
+@pytest.mark.optimized
 def test_pips_agree(draws):
     gibbs, nuts, exact = draws
     assert 0.2 < exact["pip"][2] < 0.8, "the marginal term must keep the PIP comparison non-trivial"
     _compare("PIP", gibbs["gamma"], nuts["gamma"], exact["pip"], _mean)
 
 
+@pytest.mark.optimized
 def test_coefficient_means_and_sds_agree(draws):
     gibbs, nuts, exact = draws
     _compare("theta*gamma mean", gibbs["theta"], nuts["theta"], exact["mean"], _mean)
     _compare("theta*gamma sd", gibbs["theta"], nuts["theta"], exact["sd"], _sd, method="sd")
 
 
+@pytest.mark.optimized
 def test_hyperparameter_posteriors_agree(draws):
     gibbs, nuts, exact = draws
     _compare("sigma2 mean", gibbs["sigma2"], nuts["sigma2"], exact["sigma2"], _mean)

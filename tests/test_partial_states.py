@@ -142,6 +142,7 @@ def test_cli_discovers_from_a_displacement_only_file_and_refuses_unknown_state_n
     assert err.count("\n") == 1 and "x9" in err and not (tmp_path / "r2.json").exists()
 
 
+@pytest.mark.optimized
 def test_identify_linear_recovers_a_lightly_damped_system_from_displacement_at_nine_samples_per_period():
     from dtwin_jax.preprocess.estimate import identify_linear
 

@@ -106,6 +106,7 @@ def friction_cli(tmp_path_factory):
     return tmp, ex
 
 
+@pytest.mark.optimized
 def test_friction_twin_from_the_cli_predicts_25_s(friction_cli, capsys, monkeypatch):
     monkeypatch.setattr("dtwin_jax.progress.draws_bars", lambda: True)  # as on a terminal
     tmp, ex = friction_cli
@@ -153,6 +154,7 @@ def _diverging(tmp_path, friction_cli):
     return tmp_path / "bad", tmp / "new.npz"
 
 
+@pytest.mark.optimized
 def test_a_diverging_twin_is_one_line_in_seconds_and_writes_nothing(friction_cli, tmp_path, capsys):
     twin, new = _diverging(tmp_path, friction_cli)
     out = tmp_path / "p.npz"
@@ -167,6 +169,7 @@ def test_a_diverging_twin_is_one_line_in_seconds_and_writes_nothing(friction_cli
     assert seconds < 15.0
 
 
+@pytest.mark.optimized
 def test_smooth_diverging_twin_stops_early_with_the_time_and_count():
     """A cubic softening spring (stiffness -1e7 x1^3, rate +1e7 x1^3) in 10 of 40 draws:
     adaptive Dopri8 stops at the bound."""

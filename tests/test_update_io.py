@@ -51,6 +51,7 @@ def test_example1_five_percent():
     check_input_output_prediction(ex, res)  # measured: 0.2% (nominal 150%)
 
 
+@pytest.mark.optimized
 def test_example3_five_percent_identifiable_degradation_terms():
     ex, res = _update("example3", 0.05, refine=True)  # the Gibbs twins alone: 5.1% on a 10 s free run
     _check(ex, res, rel_tol=0.01)

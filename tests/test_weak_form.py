@@ -136,6 +136,7 @@ def test_input_noise_is_taken_up_by_the_equation_error():
     assert shares[0] < 0.35 and shares[0] < shares[1] < shares[2] and shares[2] > 0.95, shares
 
 
+@pytest.mark.optimized
 def test_long_records_are_cut_into_segments():
     ex = systems.example1()
     nominal = ex.system.nominal
