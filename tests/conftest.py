@@ -17,7 +17,8 @@ if _worker.startswith("gw") and hasattr(os, "sched_setaffinity"):
 # or twice (the default run in 531 s with them off against 610 s with them on, 2026-11-28).
 # Benchmarks, the documentation's numbers and users keep them. Set before JAX starts, so
 # that subprocesses (the command line, the notebooks' kernels, the fleet's processes) inherit
-# it; JAX_DISABLE_MOST_OPTIMIZATIONS=0 runs the suite optimized.
+# it; JAX_DISABLE_MOST_OPTIMIZATIONS=0 runs the suite optimized. Tests marked `optimized`
+# keep the passes (pytest_runtest_protocol below).
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 
 # One persistent XLA compilation cache for the whole session, shared by the workers: tests
