@@ -18,6 +18,7 @@ def test_a_test_marked_optimized_compiles_with_the_passes_on_and_so_do_its_subpr
 
 
 def test_an_unmarked_test_compiles_as_the_suite_was_told(suite_passes_off):
-    # Run after the marked test in one process: the hook put both settings back.
+    # After the marked test in the same process (file order; pytest-xdist may send it to the
+    # other worker), this also shows that the hook put both settings back.
     assert _passes_off() == suite_passes_off
     assert (os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] == "1") == suite_passes_off
