@@ -13,6 +13,7 @@ from dtwin_jax.preprocess.weak_form import (
     effective_share,
     weak_input_output_stats,
     weak_windows,
+    window_grams,
     window_quadrature,
 )
 from dtwin_jax.update.sampling import resolve_library
@@ -27,6 +28,16 @@ def test_window_quadrature_integrates_by_parts():
     np.testing.assert_allclose(Phi.sum(axis=1), 1.0, rtol=1e-12)  # unit integral
     np.testing.assert_allclose(Phi_u.sum(axis=1), 1.0, rtol=1e-12)  # held weights: exact integral
     assert Phi.shape == (33, 1000)
+
+
+@pytest.mark.parametrize("num_samples, width, stride", [(1000, 200, 25), (2003, 97, 12), (300, 17, 2), (64, 64, 8)])
+def test_window_grams_equal_the_dense_products(num_samples, width, stride):
+    # The banded products are the dense ones, whatever the width's remainder by the stride.
+    mats = window_quadrature(num_samples, 1e-3, width, stride, 6, held=False, second=True)[1:]
+    dense = np.array([[a @ b.T for b in mats] for a in mats])
+    banded = window_grams(mats, width, stride)
+    assert banded.shape == dense.shape == (3, 3, mats[0].shape[0], mats[0].shape[0])
+    np.testing.assert_allclose(banded, dense, rtol=0, atol=1e-14 * np.max(np.abs(dense)))
 
 
 def test_noise_free_duffing_recovers_the_cubic_term():

@@ -40,6 +40,7 @@ from dtwin_jax.preprocess.weak_form import (
     reml_weight,
     weak_stats,
     weak_windows,
+    window_grams,
     window_quadrature,
 )
 
@@ -169,9 +170,10 @@ def accelerometer_weak_stats(nominal: LinearSecondOrder, lib: Library, dt: float
     for k in constant_columns(lib, x, u):
         L[..., k] = 0.0
     noise_var, mats = rows["noise_var"], rows["mats"]
-    grams = np.array([[A @ Bm.T for Bm in mats] for A in mats])
+    width, stride = rows["width"], rows["stride"]
+    grams = window_grams(mats, width, stride)
     S_x = np.einsum("p,ipa,ipb,abvw->ivw", noise_var, ops, ops, grams)
-    S_w = ddPhi @ ddPhi.T
+    S_w = grams[2, 2]
     S_e = np.zeros_like(S_x)
     if state_draws is not None and coef is not None:
         coef = np.asarray(coef)
