@@ -9,10 +9,12 @@ from dtwin_jax.errors import DataError
 from dtwin_jax.models import systems
 from dtwin_jax.preprocess.measurement import measure
 from dtwin_jax.preprocess.weak_form import (
+    bump_functions,
     derivative_terms,
     effective_share,
     weak_input_output_stats,
     weak_windows,
+    window_filter,
     window_grams,
     window_quadrature,
 )
@@ -31,13 +33,22 @@ def test_window_quadrature_integrates_by_parts():
 
 
 @pytest.mark.parametrize("num_samples, width, stride", [(1000, 200, 25), (2003, 97, 12), (300, 17, 2), (64, 64, 8)])
-def test_window_grams_equal_the_dense_products(num_samples, width, stride):
-    # The banded products are the dense ones, whatever the width's remainder by the stride.
-    mats = window_quadrature(num_samples, 1e-3, width, stride, 6, held=False, second=True)[1:]
+def test_window_grams_and_filters_equal_the_dense_products(num_samples, width, stride):
+    # From the kernels alone, whatever the width's remainder by the stride: the matrices'
+    # products and their action on a signal.
+    Phi, dPhi, _, ddPhi = window_quadrature(num_samples, 1e-3, width, stride, 6, held=False, second=True)
+    mats = (Phi, dPhi, ddPhi)
+    kernels = bump_functions(width, 1e-3, 6)[:3]
+    W = mats[0].shape[0]
     dense = np.array([[a @ b.T for b in mats] for a in mats])
-    banded = window_grams(mats, width, stride)
-    assert banded.shape == dense.shape == (3, 3, mats[0].shape[0], mats[0].shape[0])
+    banded = window_grams(kernels, W, stride)
+    assert banded.shape == dense.shape == (3, 3, W, W)
     np.testing.assert_allclose(banded, dense, rtol=0, atol=1e-14 * np.max(np.abs(dense)))
+    x = np.random.default_rng(0).normal(size=(2, num_samples, 3))
+    for A, kernel in zip(mats, kernels):
+        want = np.einsum("wn,rnc->rwc", A, x)
+        np.testing.assert_allclose(window_filter(kernel, stride, x), want, rtol=0,
+                                   atol=1e-13 * np.max(np.abs(want)))
 
 
 def test_noise_free_duffing_recovers_the_cubic_term():

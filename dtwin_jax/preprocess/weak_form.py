@@ -42,7 +42,7 @@ from dtwin_jax.preprocess.measurement import (
     smooth,
 )
 
-__all__ = ["weak_windows", "weak_window_fits", "window_grams", "window_quadrature", "weak_layout_supported", "weak_stats",
+__all__ = ["weak_windows", "weak_window_fits", "check_window", "window_filter", "window_grams", "window_quadrature", "weak_layout_supported", "weak_stats",
            "weak_input_output_stats", "derivative_terms", "reml_weight", "effective_share", "bump_functions",
            "TEST_POWER"]
 
@@ -131,7 +131,7 @@ def bump_functions(width: int, dt: float, power: int):
     return phi, dphi, ddphi, held
 
 
-def _check_window(num_samples: int, width: int, stride: int, power: int) -> np.ndarray:
+def check_window(num_samples: int, width: int, stride: int, power: int) -> np.ndarray:
     if width < 2 * power + 3 or width > num_samples:
         raise DataError(f"weak-form window of {width} samples must lie in [{2 * power + 3}, {num_samples}]")
     if stride < 1:
@@ -160,40 +160,49 @@ def window_quadrature(num_samples: int, dt: float, width: int, stride: int, powe
     ``dPhi @ g`` ~ ``int phi_k' g dt``, ``ddPhi @ g`` ~ ``int phi_k'' g dt``, ``Phi_u`` the
     input's weights.
     """
-    starts = _check_window(num_samples, width, stride, power)
+    starts = check_window(num_samples, width, stride, power)
     phi, dphi, ddphi, held_w = bump_functions(width, dt, power)
     out = (_place(phi, starts, num_samples), _place(dphi, starts, num_samples),
            _place(held_w if held else phi, starts, num_samples))
     return (*out, _place(ddphi, starts, num_samples)) if second else out
 
 
-def window_grams(mats, width: int, stride: int) -> np.ndarray:
-    """Every ``A @ B.T`` of quadrature matrices of :func:`window_quadrature` (row ``k``
-    nonzero on samples ``[k stride, k stride + width)`` only), from the overlapping rows alone.
+def window_grams(kernels, num_windows: int, stride: int) -> np.ndarray:
+    """Every ``A @ B.T`` of quadrature matrices that place one kernel per window (those of
+    :func:`window_quadrature`: row ``k`` is the kernel on samples ``[k stride, k stride +
+    width)``), from the kernels alone.
 
     Two windows overlap when their starts are less than ``width`` apart, so each product is a
-    band of ``2 (width - 1) // stride + 1`` diagonals: ``O(W width^2 / stride)`` work instead of
-    the dense product's ``O(W^2 N)``, which took most of a long accelerometer record's update
-    (the three smooth filters of a 20 s record at 1 kHz: 45 s dense, 0.35 s banded).
+    band of ``2 (width - 1) // stride + 1`` diagonals, constant along each: ``O(width^2 /
+    stride)`` work instead of the dense product's ``O(W^2 N)``, which took most of a long
+    accelerometer record's update (the three smooth filters of a 20 s record at 1 kHz: 45 s).
 
-    **Arguments:** ``mats``: ``c`` matrices ``(W, N)``; the window ``width`` and ``stride`` in
-    samples.
+    **Arguments:** ``kernels``: ``c`` arrays ``(width,)`` (quadrature weights); the number of
+    windows ``W`` and their ``stride`` in samples.
 
     **Returns:** ``(c, c, W, W)``."""
-    W = mats[0].shape[0]
-    k = np.arange(W)
-    support = k[:, None] * stride + np.arange(width)[None]
-    rows_of = [A[k[:, None], support] for A in mats]  # each row's support, (W, width)
-    out = np.zeros((len(mats), len(mats), W, W))
+    width = len(kernels[0])
+    k = np.arange(num_windows)
+    out = np.zeros((len(kernels), len(kernels), num_windows, num_windows))
     for o in range(-((width - 1) // stride), (width - 1) // stride + 1):
-        rows = k[max(0, -o):W - max(0, o)]
+        rows = k[max(0, -o):num_windows - max(0, o)]
         shift = abs(o) * stride  # how far the later of windows k and k + o starts after the other
         early, late = (slice(shift, None), slice(None, width - shift)) if o >= 0 else \
             (slice(None, width - shift), slice(shift, None))
-        for i, a in enumerate(rows_of):
-            for j, b in enumerate(rows_of):
-                out[i, j, rows, rows + o] = np.einsum("kn,kn->k", a[rows, early], b[rows + o, late])
+        for i, a in enumerate(kernels):
+            for j, b in enumerate(kernels):
+                out[i, j, rows, rows + o] = np.dot(a[early], b[late])
     return out
+
+
+def window_filter(kernel: np.ndarray, stride: int, x: np.ndarray) -> np.ndarray:
+    """``int chi_k g dt`` on every window: ``x (R, N, c)`` through one kernel ``(width,)`` of
+    quadrature weights placed every ``stride`` samples (what a matrix of
+    :func:`window_quadrature` does, without the ``(W, N)`` matrix).
+
+    **Returns:** ``(R, W, c)``, ``W = (N - width) // stride + 1``."""
+    view = np.lib.stride_tricks.sliding_window_view(x, len(kernel), axis=1)[:, ::stride]  # (R, W, c, width)
+    return view @ kernel
 
 
 def derivative_terms(lib: Library, x, u, pairs, *, grid: int = 8193) -> dict[int, np.ndarray]:
@@ -485,7 +494,8 @@ def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *
         L[..., k] = -np.einsum("wn,rn->rw", dPhi, G)
     # The rows' covariance: sensor noise through the operators, plus the equation error.
     mats = (Phi, dPhi, ddPhi)
-    grams = window_grams(mats, width, stride)  # (3, 3, W, W)
+    phi, dphi, ddphi, _ = bump_functions(width, dt, power)
+    grams = window_grams((phi, dphi, ddphi), Phi.shape[0], stride)  # (3, 3, W, W)
     S_x = np.einsum("p,ipa,ipb,abvw->ivw", noise_var, ops, ops, grams)
     S_w = grams[0, 0]
     weights = np.zeros(len(idx))

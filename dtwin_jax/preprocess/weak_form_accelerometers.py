@@ -36,41 +36,34 @@ from dtwin_jax.preprocess.denoise import auto_half_width, noise_std
 from dtwin_jax.preprocess.weak_form import (
     TEST_POWER,
     bump_functions,
+    check_window,
     effective_share,
     reml_weight,
     weak_stats,
     weak_windows,
+    window_filter,
     window_grams,
-    window_quadrature,
 )
 
-__all__ = ["accelerometer_filters", "accelerometer_weak_stats", "constant_columns", "equivalent_linear"]
+__all__ = ["accelerometer_kernels", "accelerometer_weak_stats", "constant_columns", "equivalent_linear"]
 
 
-def accelerometer_filters(num_samples: int, dt: float, width: int, stride: int, held: bool,
+def accelerometer_kernels(dt: float, width: int, held: bool,
                           power: int = TEST_POWER) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
-    """The quadrature matrices of ``chi``, ``chi'``, ``chi''`` on one record, for smooth signals
-    (trapezoid) and for a held input (exact over each held step).
+    """The quadrature weights of ``chi``, ``chi'``, ``chi''`` on one window, for smooth signals
+    (trapezoid) and for a held input (exact over each held step); :func:`window_filter` places
+    them on every window of a record.
 
-    **Arguments:** ``num_samples`` N, ``dt`` s, window ``width`` and ``stride`` in samples,
-    ``held``: inputs held over each step (else band-limited: the trapezoid), ``power`` p.
+    **Arguments:** ``dt`` s, window ``width`` in samples, ``held``: inputs held over each step
+    (else band-limited: the trapezoid), ``power`` p.
 
-    **Returns:** ``((Phi, dPhi, ddPhi), (Phi_h, dPhi_h, ddPhi_h))``, each ``(W, N)``."""
-    Phi, dPhi, Phi_u, ddPhi = window_quadrature(num_samples, dt, width, stride, power, held=held, second=True)
+    **Returns:** ``((phi, dphi, ddphi), (phi_h, dphi_h, ddphi_h))``, each ``(width,)``."""
+    phi, dphi, ddphi, held_w = bump_functions(width, dt, power)
     if not held:
-        return (Phi, dPhi, ddPhi), (Phi, dPhi, ddPhi)
-    phi, dphi, _, _ = bump_functions(width, dt, power)
-    starts = np.arange(0, num_samples - width + 1, stride)
-
-    def place(row):
-        out = np.zeros((starts.size, num_samples))
-        for k, s in enumerate(starts):
-            out[k, s:s + width] = row
-        return out
-
+        return (phi, dphi, ddphi), (phi, dphi, ddphi)
     # The integral of chi' (chi'') over a held step is the step's change of chi (chi').
     steps = [np.append(np.diff(g / dt), 0.0) for g in (phi, dphi)]
-    return (Phi, dPhi, ddPhi), (Phi_u, place(steps[0]), place(steps[1]))
+    return (phi, dphi, ddphi), (held_w, steps[0], steps[1])
 
 
 def constant_columns(lib: Library, x, u) -> list[int]:
@@ -92,14 +85,15 @@ def _rows(nominal: LinearSecondOrder, dt: float, a, u, interpolation: str, width
     w0, _ = weak_windows(nominal, dt, N)
     width = w0 if width is None else int(width)
     stride = max(1, width // 8)
-    mats, held = accelerometer_filters(N, dt, width, stride, interpolation == "held", power)
+    check_window(N, width, stride, power)
+    kernels, held = accelerometer_kernels(dt, width, interpolation == "held", power)
     M, B = np.asarray(nominal.M), np.asarray(nominal.B)
     J = np.asarray(jax.jacfwd(nominal.rate)(jnp.zeros(m), jnp.zeros(nominal.n)))
     idx = list(nominal.regressed_index)
     # The acceleration's held part (the input through M^-1 B) and its smooth rest.
     h = np.einsum("ij,rnj->rni", np.linalg.solve(M, B), u)
     rest = a - h
-    Ia, Da, DDa = (np.einsum("wn,rnj->rwj", A, rest) + np.einsum("wn,rnj->rwj", Ah, h) for A, Ah in zip(mats, held))
+    Ia, Da, DDa = (window_filter(k, stride, rest) + window_filter(kh, stride, h) for k, kh in zip(kernels, held))
     # ops[i, j] weighs (int chi a_j, int chi' a_j, int chi'' a_j) in equation i's target.
     ops = np.zeros((d, d, 3))
     for ii, i in enumerate(idx):
@@ -109,10 +103,10 @@ def _rows(nominal: LinearSecondOrder, dt: float, a, u, interpolation: str, width
     f_u = np.asarray(jax.vmap(nominal.rate_batch)(jnp.zeros((R, N, m)), jnp.asarray(u)))
     f_u = f_u - np.asarray(nominal.rate(jnp.zeros(m), jnp.zeros(nominal.n)))
     Y = (np.einsum("rwj,ij->rwi", Ia, ops[..., 0]) + np.einsum("rwj,ij->rwi", Da, ops[..., 1])
-         + np.einsum("rwj,ij->rwi", DDa, ops[..., 2]) - np.einsum("wn,rni->rwi", held[2], f_u[..., idx]))
+         + np.einsum("rwj,ij->rwi", DDa, ops[..., 2]) - window_filter(held[2], stride, f_u[..., idx]))
     # Sensor noise: the SG residual of the smooth rest (the force sensor's noise is in it too).
     noise_var = np.mean(np.asarray(noise_std(jnp.asarray(rest), auto_half_width(nominal, dt, N))) ** 2, axis=0)
-    return {"Y": Y, "Ia": Ia, "Da": Da, "mats": mats, "ops": ops, "noise_var": noise_var,
+    return {"Y": Y, "Ia": Ia, "Da": Da, "kernels": kernels, "ops": ops, "noise_var": noise_var,
             "width": width, "stride": stride}
 
 
@@ -159,19 +153,18 @@ def accelerometer_weak_stats(nominal: LinearSecondOrder, lib: Library, dt: float
     R, N, d = a.shape
     m = nominal.m
     rows = _rows(nominal, dt, a, u, interpolation, width, power)
-    Y, ddPhi, ops = rows["Y"], rows["mats"][2], rows["ops"]
+    Y, ops, kernels, stride = rows["Y"], rows["ops"], rows["kernels"], rows["stride"]
     flat_u = jnp.asarray(u.reshape(R * N, -1))
 
     def columns(states):
         raw = np.asarray(lib(jnp.asarray(states.reshape(R * N, m)), flat_u)).reshape(R, N, -1)
-        return np.einsum("wn,rnk->rwk", ddPhi, raw)
+        return window_filter(kernels[2], stride, raw)
 
     L = columns(x)
     for k in constant_columns(lib, x, u):
         L[..., k] = 0.0
-    noise_var, mats = rows["noise_var"], rows["mats"]
-    width, stride = rows["width"], rows["stride"]
-    grams = window_grams(mats, width, stride)
+    noise_var = rows["noise_var"]
+    grams = window_grams(kernels, Y.shape[1], stride)
     S_x = np.einsum("p,ipa,ipb,abvw->ivw", noise_var, ops, ops, grams)
     S_w = grams[2, 2]
     S_e = np.zeros_like(S_x)
