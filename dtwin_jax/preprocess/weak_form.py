@@ -42,7 +42,8 @@ from dtwin_jax.preprocess.measurement import (
     smooth,
 )
 
-__all__ = ["weak_windows", "weak_window_fits", "check_window", "window_filter", "window_grams", "window_quadrature", "weak_layout_supported", "weak_stats",
+__all__ = ["weak_windows", "weak_window_fits", "check_window", "window_filter", "window_grams", "window_quadrature",
+           "weak_layout_supported", "weak_stats",
            "weak_input_output_stats", "derivative_terms", "reml_weight", "effective_share", "bump_functions",
            "TEST_POWER"]
 
@@ -132,6 +133,12 @@ def bump_functions(width: int, dt: float, power: int):
 
 
 def check_window(num_samples: int, width: int, stride: int, power: int) -> np.ndarray:
+    """The windows' first samples on a record, after checking the window fits.
+
+    **Arguments:** ``num_samples`` N, the window ``width`` and ``stride`` in samples, the test
+    functions' ``power`` p (a window needs at least ``2 p + 3`` samples).
+
+    **Returns:** ``(W,)`` sample indices; raises ``DataError`` when the window does not fit."""
     if width < 2 * power + 3 or width > num_samples:
         raise DataError(f"weak-form window of {width} samples must lie in [{2 * power + 3}, {num_samples}]")
     if stride < 1:
@@ -493,7 +500,6 @@ def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *
     for k, G in by_parts.items():
         L[..., k] = -np.einsum("wn,rn->rw", dPhi, G)
     # The rows' covariance: sensor noise through the operators, plus the equation error.
-    mats = (Phi, dPhi, ddPhi)
     phi, dphi, ddphi, _ = bump_functions(width, dt, power)
     grams = window_grams((phi, dphi, ddphi), Phi.shape[0], stride)  # (3, 3, W, W)
     S_x = np.einsum("p,ipa,ipb,abvw->ivw", noise_var, ops, ops, grams)
