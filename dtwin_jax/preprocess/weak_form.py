@@ -295,7 +295,7 @@ def _as_band(cov: np.ndarray, band: int) -> np.ndarray:
     return np.stack([np.concatenate([np.diagonal(cov, -o), np.zeros(o)]) for o in range(band + 1)])
 
 
-def _whitener(cov: np.ndarray, banded: bool):
+def _whitener(cov: np.ndarray):
     """``b -> chol(cov)^-1 b`` and ``log det cov``, a relative jitter of 1e-10 on the diagonal.
     Without the states' error the rows' covariance is a band (only overlapping windows
     correlate): its Cholesky factor then costs ``O(W band^2)`` instead of ``O(W^3)``.
@@ -304,6 +304,7 @@ def _whitener(cov: np.ndarray, banded: bool):
     from scipy.linalg import cholesky_banded, lapack, solve_triangular
 
     W = cov.shape[1]
+    banded = cov.shape[0] != W
     diagonal = cov[0] if banded else np.diagonal(cov)
     jitter = 1e-10 * np.sum(diagonal) / W
     if not banded:
@@ -336,7 +337,7 @@ def reml_weight(L, Y, S_x, S_w) -> float:
     band = max(_bandwidth(S_x), _bandwidth(S_w))
     S_x, S_w = _as_band(S_x, band), _as_band(S_w, band)
     for lam in lams:
-        solve, logdet = _whitener(S_x + lam * S_w, S_x.shape[0] != S_x.shape[1])
+        solve, logdet = _whitener(S_x + lam * S_w)
         X = np.concatenate([solve(L[r]) for r in range(R)])
         y = np.concatenate([solve(Y[r]) for r in range(R)])
         U, sv, _ = np.linalg.svd(X, full_matrices=False)
@@ -362,8 +363,7 @@ def effective_share(L, Y, cov) -> float:
     import arviz_stats as az
 
     R, W, K = L.shape
-    band_cov = _as_band(cov, _bandwidth(cov))
-    solve, _ = _whitener(band_cov, band_cov.shape[0] != W)
+    solve, _ = _whitener(_as_band(cov, _bandwidth(cov)))
     X = np.stack([solve(L[r]) for r in range(R)])
     y = np.stack([solve(Y[r]) for r in range(R)])
     coef, _, rank, _ = np.linalg.lstsq(X.reshape(-1, K), y.reshape(-1), rcond=1e-10)
