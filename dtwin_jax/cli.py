@@ -685,8 +685,7 @@ def console_main(argv=None) -> int:
     except DataError as e:
         return _error(str(e))
     except KeyboardInterrupt:
-        print(INTERRUPTED, file=sys.stderr)
-        return 130
+        return _interrupted()
     return main(argv)
 
 
@@ -720,8 +719,7 @@ def main(argv=None) -> int:
     except DataError as e:
         return _error(str(e))
     except KeyboardInterrupt:  # the writers are atomic and run last: no file is half-written
-        print(INTERRUPTED, file=sys.stderr)
-        return 130
+        return _interrupted()
     except Exception as e:
         if os.environ.get("DTWIN_JAX_DEBUG") == "1":
             raise
@@ -730,6 +728,16 @@ def main(argv=None) -> int:
                           "try fewer --draws/--chains or a smaller --library")
         _error(f"internal error: {type(e).__name__}: {_first_line(e)} (set DTWIN_JAX_DEBUG=1 for the traceback)")
         return 1
+
+
+def _interrupted() -> int:
+    """Print :data:`INTERRUPTED`; returns 130. A Ctrl-C that ended inside a string ``exec`` or
+    ``eval`` (namedtuple, dataclass and sympy code run some) sets a CPython 3.12 flag that, under
+    ``python -m``, turns the exit status into a death by SIGINT (-2) after the handler has run.
+    The flag is cleared at the start of every string ``exec``, so one empty one clears it."""
+    print(INTERRUPTED, file=sys.stderr)
+    exec("None")  # not outside input: a constant, run only to clear the flag
+    return 130
 
 
 def _first_line(e: BaseException) -> str:

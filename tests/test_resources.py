@@ -268,6 +268,26 @@ def test_ctrl_c_stops_a_run_in_one_line_and_leaves_no_file(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == before
 
 
+_INTERRUPT_IN_STRING_EXEC = """import sys
+from dtwin_jax.cli import _interrupted
+try:
+    exec("raise KeyboardInterrupt")
+except KeyboardInterrupt:
+    sys.exit(_interrupted())
+"""
+
+
+def test_an_interrupt_inside_a_string_exec_still_exits_130_under_python_m(tmp_path):
+    """CPython 3.12 under ``python -m`` dies by SIGINT (-2) after a caught Ctrl-C that ended in a
+    string ``exec`` (a namedtuple's or sympy's), whatever status the handler returned; the CLI's
+    handler clears that. (The bare ``sys.exit(130)`` there exits -2: measured on 3.12.1.)"""
+    (tmp_path / "interrupted_in_exec.py").write_text(_INTERRUPT_IN_STRING_EXEC)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(ROOT)]))
+    proc = subprocess.run([sys.executable, "-m", "interrupted_in_exec"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 130 and proc.stderr.strip() == INTERRUPTED, proc.stderr
+
+
 def test_demo_records_are_checked(tmp_path, capsys):
     assert main(["demo", "--mode", "output-only", "--records", "1000000000", "--out-dir", str(tmp_path / "demo")]) == 2
     err = capsys.readouterr().err
