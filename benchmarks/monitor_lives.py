@@ -21,7 +21,7 @@ import numpy as np
 import dtwin_jax  # noqa: F401  (float64)
 from dtwin_jax.models import zoo
 from dtwin_jax.models.lives import simulate_life
-from dtwin_jax.monitor import MONITOR_SETTINGS, Monitor
+from dtwin_jax.monitor import FALSE_ALARM, MONITOR_SETTINGS, Monitor
 from dtwin_jax.monitor.degradation import TRENDS as DEGRADATION_TRENDS
 from dtwin_jax.monitor.degradation import coefficient_track, remaining_life
 from dtwin_jax.update.from_data import update_from_data
@@ -127,11 +127,12 @@ def main():
     ap.add_argument("--layout", default="accelerations", choices=("accelerations", "states", "accelerometers"))
     ap.add_argument("--framework", default="input-output", choices=("input-output", "output-only"))
     ap.add_argument("--seconds", type=float, default=1.0, help="each window's length (s)")
-    ap.add_argument("--false-alarm", type=float, default=1e-3)
+    ap.add_argument("--false-alarm", type=float, default=None, help="default: the monitor's for the framework")
     ap.add_argument("--forget", type=float, default=0.9)
     ap.add_argument("--out", default=None)
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
+    a.false_alarm = a.false_alarm or FALSE_ALARM[a.framework]
     within = a.within or (3 if a.kind == "term" else 5)
     rows = []
     seeds = iter(range(a.first_seed, a.first_seed + 10 * a.lives))

@@ -136,8 +136,9 @@ def _parser() -> argparse.ArgumentParser:
     mo.add_argument("--out", required=True, help="MONITOR.json: the timeline (rewritten after every window)")
     mo.add_argument("--csv", default=None, help="also MONITOR.csv: one row per window")
     mo.add_argument("--plot", default=None, help="also a PNG of the test, the PIPs and the coefficients over service time")
-    mo.add_argument("--false-alarm", type=float, default=1e-3,
-                    help="chance that a window that follows the twin raises an alarm (default 0.001)")
+    mo.add_argument("--false-alarm", type=float, default=None,
+                    help="chance that a window that follows the twin raises an alarm (default 0.001 for an "
+                         "input-output twin, 0.0005 for an output-only one)")
     mo.add_argument("--forget", type=float, default=0.9,
                     help="weight of the older windows' data at each update, in [0, 1] (default 0.9)")
     mo.add_argument("--track", default=None, metavar="STATE:TERM",
@@ -395,7 +396,7 @@ def _check_monitor_args(args) -> None:
         raise DataError("--window goes with --record (the length of the windows cut from it)")
     if args.window is not None and not (args.window > 0 and args.window < float("inf")):
         raise DataError(f"--window must be a positive number of seconds, got {args.window:g}")
-    if not 0.0 < args.false_alarm < 1.0:
+    if args.false_alarm is not None and not 0.0 < args.false_alarm < 1.0:
         raise DataError(f"--false-alarm must be in (0, 1), got {args.false_alarm:g}")
     if not 0.0 <= args.forget <= 1.0:
         raise DataError(f"--forget must be in [0, 1], got {args.forget:g}")
@@ -423,10 +424,10 @@ def _monitor(args) -> int:
     from dtwin_jax.monitor import Monitor, first_alarm
     from dtwin_jax.monitor.timeline import write_timeline
 
-    settings = {"false_alarm": args.false_alarm, "forget": args.forget}
     with locked(args.twin, on_wait=_waiting(args.twin)):
         mon = Monitor(load_twin(args.twin), settings=_settings(args), seed=args.seed, smoothing=args.smoothing,
-                      **settings)
+                      false_alarm=args.false_alarm, forget=args.forget)
+        settings = {"false_alarm": mon.false_alarm, "forget": mon.forget}
         for source, data, t_start in _monitor_windows(args):
             if mon.absorbed(data):
                 print(f"{source}: already in the timeline; skipped")
@@ -459,7 +460,7 @@ def _monitor(args) -> int:
         if args.plot:
             from dtwin_jax.plots import plot_monitor
 
-            plot_monitor(timeline, args.plot, false_alarm=args.false_alarm, remaining=remaining)
+            plot_monitor(timeline, args.plot, false_alarm=mon.false_alarm, remaining=remaining)
     first = first_alarm(timeline)
     print(f"{len(timeline)} windows in the timeline; first alarm: {'none' if first is None else f'window {first}'}")
     return 0

@@ -17,7 +17,7 @@ from dtwin_jax.io import write_nominal
 from dtwin_jax.io.store import load_twin, save_twin
 from dtwin_jax.models import zoo
 from dtwin_jax.models.lives import simulate_life
-from dtwin_jax.monitor import MONITOR_SETTINGS, Monitor, window_test
+from dtwin_jax.monitor import FALSE_ALARM, MONITOR_SETTINGS, Monitor, window_test
 from dtwin_jax.monitor.service import combined_p_value, pooled_tests
 from dtwin_jax.monitor.timeline import timeline_csv
 from dtwin_jax.sampler import SuffStats
@@ -187,6 +187,26 @@ def test_a_stiffness_drop_and_a_new_term_are_flagged_when_they_appear_and_named(
     assert rows[1].split(",")[3] == "True" and rows[1].split(",")[8] == "x2:x1"
 
 
+def test_an_output_only_twin_from_accelerometers_flags_a_new_term_at_its_own_rate():
+    """Ambient vibration read by accelerometers alone (no force, no displacement; 5% noise):
+    zoo member 10's cubic hardening appears in window 2 of 10 s windows. The monitor of an
+    output-only twin asks for its framework's false-alarm rate."""
+    member = zoo.draw_member(10)
+    assert member.family == "cubic-hardening"
+    ex = member.example._replace(duration=10.0)
+    windows = simulate_life(ex, jax.random.key(10), scale=[0.0, 0.0, 1.0], level=0.05, output_only=True)
+    data = [{k: w[k] for k in ("t", "xdot", "xdot_names")} for w in windows]
+    base = update_from_data("output-only", ex.system.nominal, data[0], library=ex.library_output_only,
+                            settings=MONITOR_SETTINGS)
+    mon = Monitor(base)
+    assert mon.false_alarm == FALSE_ALARM["output-only"] == 5e-4
+    assert Monitor(base, false_alarm=1e-3).false_alarm == 1e-3
+    still, change = (mon.step(w, source=f"w{i}") for i, w in enumerate(data[1:], start=1))
+    # measured: p = 1.0 for the stationary window, 2.0e-10 for the change
+    assert not still["alarm"] and still["p_value"] > 0.5
+    assert change["alarm"] and change["new_terms"] == ["x2:x1**3"] and change["p_value"] < 1e-9
+
+
 @pytest.fixture
 def files(life, tmp_path):
     ex, windows, base = life
@@ -210,6 +230,7 @@ def test_a_resumed_monitor_has_the_history_of_an_uninterrupted_one(files, monkey
                  str(tmp / "m.csv"), "--plot", str(tmp / "m.png"), "--track", "x2:x1", "--critical", "100",
                  "--trend", "wiener"] + FAST) == 0
     full = json.loads((tmp / "m.json").read_text())
+    assert full["false_alarm"] == FALSE_ALARM["input-output"] == 1e-3 and full["forget"] == 0.9  # the defaults
     rul = full.pop("remaining_life")
     assert rul["term"] == "x2:x1" and rul["windows"] == 4 and rul["critical"] == 100.0 and rul["trend"] == "wiener"
     # Four noisy windows: the walk may never get there, an unbounded interval (JSON null).

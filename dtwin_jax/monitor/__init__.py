@@ -7,6 +7,7 @@ from dtwin_jax.monitor.change import (
            window_test,
 )
 from dtwin_jax.monitor.service import (
+           FALSE_ALARM,
            MONITOR_SETTINGS,
            Monitor,
            alarm_reasons,
@@ -14,5 +15,5 @@ from dtwin_jax.monitor.service import (
            first_alarm,
 )
 
-__all__ = ["ChangeTest", "window_statistics", "window_test", "MONITOR_SETTINGS", "Monitor",
+__all__ = ["ChangeTest", "window_statistics", "window_test", "FALSE_ALARM", "MONITOR_SETTINGS", "Monitor",
            "alarm_reasons", "data_fingerprint", "first_alarm"]
