@@ -32,8 +32,8 @@ from dtwin_jax.update.from_data import update_from_data
 from dtwin_jax.update.lifecycle import arrays_sha256
 from dtwin_jax.update.result import SamplerSettings, UpdateResult
 
-__all__ = ["FALSE_ALARM", "LOOKBACK", "MONITOR_SETTINGS", "Monitor", "alarm_reasons", "combined_p_value", "data_fingerprint",
-           "first_alarm", "pooled_tests", "recent_windows", "timeline_dispersion", "window_estimates",
+__all__ = ["FALSE_ALARM", "LOOKBACK", "MONITOR_SETTINGS", "Monitor", "alarm_reasons", "combined_p_value",
+           "data_fingerprint", "first_alarm", "pooled_tests", "recent_windows", "timeline_dispersion", "window_estimates",
            "window_spread"]
 
 # Two chains of 1000 draws after 250 sweeps of burn-in: a 1 s window tested and absorbed in
@@ -243,7 +243,7 @@ class Monitor:
 
     def __post_init__(self):
         if self.false_alarm is None:
-            self.false_alarm = FALSE_ALARM.get(self.twin.mode, FALSE_ALARM["input-output"])
+            self.false_alarm = FALSE_ALARM[self.twin.mode]
         if not 0.0 < self.false_alarm < 1.0:
             raise DataError(f"the false-alarm rate must be in (0, 1), got {self.false_alarm:g}")
         if not 0.0 <= self.forget <= 1.0:
