@@ -132,7 +132,8 @@ def main():
     ap.add_argument("--out", default=None)
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
-    a.false_alarm = a.false_alarm or FALSE_ALARM[a.framework]
+    if a.false_alarm is None:  # an explicit 0 goes on to the monitor's one-line error
+        a.false_alarm = FALSE_ALARM[a.framework]
     within = a.within or (3 if a.kind == "term" else 5)
     rows = []
     seeds = iter(range(a.first_seed, a.first_seed + 10 * a.lives))
