@@ -95,3 +95,51 @@ def test_a_program_exported_for_another_platform_is_exported_again(folder):
     (got,) = aot.call("double", fn, (x,))
     np.testing.assert_array_equal(np.asarray(got), [0.0, 2.0, 4.0])
     assert export.deserialize(bytearray(path.read_bytes())).platforms == ("cpu",)  # exported again
+
+
+def _duffing_twins(draws: int, stochastic: bool):
+    """`draws` twins of example 1's nominal model plus its cubic spring (1% spread), with the
+    constant diffusion of an output-only twin when `stochastic`."""
+    from dtwin_jax.library import parse_library
+    from dtwin_jax.models.prediction import UpdatedTwin
+
+    ex = systems.example1()
+    lib = parse_library("poly:3", 2, 0 if stochastic else 1)
+    coef = np.zeros((draws, 1, lib.K))
+    coef[:, 0, lib.names.index("x1**3")] = -1e5 * (1 + 0.01 * np.random.default_rng(0).standard_normal(draws))
+    extra = {}
+    if stochastic:
+        extra = dict(diffusion_library=parse_library("terms:1", 2, 0), diffusion_coefficients=jnp.full((draws, 1, 1), 0.25))
+    return UpdatedTwin(ex.system.nominal, lib, (1,), jnp.asarray(coef), **extra), ex
+
+
+@pytest.mark.parametrize("stochastic", [False, True], ids=["input-output", "output-only"])
+def test_a_prediction_through_its_export_gives_the_plain_paths(folder, stochastic):
+    """The prediction's solve (the model-error check of every update) is exported with
+    equinox's run-time checks as NaN outputs: the paths, status and stop times equal the plain
+    call's, exported and loaded as by a new process."""
+    from dtwin_jax.models.prediction import predict
+
+    twins, ex = _duffing_twins(3, stochastic)
+    t = jnp.arange(300) * 1e-3
+    u = None if stochastic else 10.0 * jax.random.normal(jax.random.key(2), (300, 1))
+    run = lambda: predict(twins, ex.x0, t, u, key=jax.random.key(5))  # noqa: E731
+    exported = run()
+    assert [p.name.split("-")[0] for p in folder.glob("*.bin")] == ["paths"]
+    aot._LOADED.clear()  # as a new process: read from disk
+    loaded = run()
+    aot.enable(None)
+    plain = run()
+    assert np.all(np.asarray(plain["status"]) == systems.OK)
+    assert np.ptp(np.asarray(plain["paths"])[:, -1, 0]) > 0  # the draws differ
+    for got in (exported, loaded):
+        for name in ("paths", "status", "stop_time"):
+            np.testing.assert_allclose(np.asarray(got[name]), np.asarray(plain[name]), rtol=1e-12, atol=1e-15)
+
+
+def test_a_program_with_a_host_callback_runs_as_a_plain_call(folder):
+    seen = []
+    fn = jax.jit(lambda a: (jax.debug.callback(lambda v: seen.append(float(v)), a.sum()), 2.0 * a)[1:])
+    (got,) = aot.call("callback", fn, (jnp.arange(3.0),))
+    np.testing.assert_array_equal(np.asarray(got), [0.0, 2.0, 4.0])
+    assert seen == [3.0] and not list(folder.glob("*.bin"))

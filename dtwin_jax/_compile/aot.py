@@ -10,11 +10,16 @@ dtypes of its arguments, its static arguments, the platform it runs on (a progra
 for the CPU fails on a GPU), the jax version and a digest of dtwin-jax's source. Otherwise,
 or inside another trace, it is a plain call: within one process an export only costs a
 second lowering (three of the test files ran in 240.2 s without it against 254.7 s with it).
-Programs with host callbacks (progress bars) cannot be exported.
+Programs with host callbacks (progress bars) cannot be exported, so equinox's run-time checks
+(``eqx.error_if``, in diffrax's solves) are traced for an export as NaN outputs instead of
+raised errors (callers of such programs already treat a non-finite result as a failure). A
+program that still holds a callback (one whose inner programs this process traced before
+with the checks on) runs as a plain call in this process.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import os
@@ -81,7 +86,11 @@ def call(name: str, fn: Callable, args: tuple, static: tuple = ()):
     if run is None:
         run = _load_or_export(path, fn, tree, leaves)
         _LOADED[key] = run
-    return run(*leaves)
+    return fn(*args) if run is _PLAIN else run(*leaves)
+
+
+# _LOADED's value for a program that cannot be exported: a plain call.
+_PLAIN = object()
 
 
 @functools.cache
@@ -116,6 +125,21 @@ def _source_digest() -> str:
     return h.hexdigest()
 
 
+@contextlib.contextmanager
+def _checks_as_nan():
+    """Equinox's run-time checks traced as NaN outputs instead of host callbacks, which
+    ``jax.export`` cannot serialize. Inner programs traced meanwhile keep that form for the
+    rest of the process (JAX's trace cache ignores the setting): a failed check there gives
+    NaN, not an exception."""
+    from equinox import _errors
+
+    before, _errors.EQX_ON_ERROR = _errors.EQX_ON_ERROR, "nan"
+    try:
+        yield
+    finally:
+        _errors.EQX_ON_ERROR = before
+
+
 def _load_or_export(path: Path, fn: Callable, tree, leaves) -> Callable:
     from jax import export
 
@@ -131,7 +155,11 @@ def _load_or_export(path: Path, fn: Callable, tree, leaves) -> Callable:
     def flat(*xs):
         return fn(*jax.tree.unflatten(tree, xs))
 
-    exported = export.export(jax.jit(flat))(*leaves)
+    try:
+        with _checks_as_nan():
+            exported = export.export(jax.jit(flat))(*leaves)
+    except NotImplementedError:  # "serialization of host_callbacks is not yet implemented"
+        return _PLAIN
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     with os.fdopen(fd, "wb") as f:

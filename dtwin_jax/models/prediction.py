@@ -20,7 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dtwin_jax._compile.keys import strong_jit
+from dtwin_jax._compile import aot
+from dtwin_jax._compile.keys import strong_jit, strong_types
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library, TermTable, eval_terms, parse_library, term_table
 from dtwin_jax.models import systems
@@ -290,6 +291,14 @@ def _paths(twins: UpdatedTwin, x0, t, u, keys, lower, upper, substeps):
     return jax.vmap(run, (0, 0 if u.ndim == 3 else None))(twins.coefficients, u)
 
 
+def _run_paths(twins: UpdatedTwin, x0, t, u, keys, lower, upper, substeps):
+    """:func:`_paths` through an exported program where the process keeps them (the command
+    line): a new process then skips tracing the diffrax solve (about 2 s of a warm update's
+    model-error check)."""
+    args = strong_types(jax.tree.map(jnp.asarray, (twins, x0, t, u, keys, lower, upper)))
+    return aot.call("paths", lambda *a: _paths(*a, substeps), args, (substeps,))
+
+
 def _summary(paths, status) -> dict:
     """Mean and 95% band over the draws that finished (failed draws' paths become NaN)."""
     ok = status == systems.OK
@@ -363,7 +372,7 @@ def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = 
     twins = library_as_data(twins)
     size = _chunks(S, progress)
     if size >= S:
-        paths, status, stop = _paths(twins, x0, t, u, keys, lower, upper, substeps)
+        paths, status, stop = _run_paths(twins, x0, t, u, keys, lower, upper, substeps)
     else:
         parts = []
         with Bar(True, S, "predict (draws)"):
@@ -372,8 +381,8 @@ def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = 
                 idx = np.minimum(np.arange(start, start + size), S - 1)
                 dcoef = twins.diffusion_coefficients[idx] if twins.stochastic else None
                 uc = u[idx] if u is not None and u.ndim == 3 else u
-                part = jax.block_until_ready(_paths(_one(twins, twins.coefficients[idx], dcoef), x0, t, uc,
-                                                    None if keys is None else keys[idx], lower, upper, substeps))
+                part = jax.block_until_ready(_run_paths(_one(twins, twins.coefficients[idx], dcoef), x0, t, uc,
+                                                        None if keys is None else keys[idx], lower, upper, substeps))
                 parts.append(jax.tree.map(lambda a: a[: min(size, S - start)], part))
                 tick(min(size, S - start))
         paths, status, stop = (jnp.concatenate(p) for p in zip(*parts))
