@@ -19,8 +19,8 @@ def configure_runtime(cores: str | None = None, cache: str | None = None, platfo
 
     * A persistent XLA compilation cache (``cache``, else ``$DTWIN_JAX_CACHE``, default
       ``~/.cache/dtwin-jax/jax``; ``"off"`` disables it). A new process then skips XLA
-      compilation, and :mod:`dtwin_jax._compile.aot` keeps the traced sampler, smoothers and
-      output-only programs beside it, so it skips their tracing too: the output-only update
+      compilation, and :mod:`dtwin_jax._compile.aot` keeps the traced sampler, smoothers,
+      prediction and output-only programs beside it, so it skips their tracing too: the output-only update
       of 300 records x 1 s, the first call in a new Python process, took 24 s with nothing
       cached and 5.8 s with the caches filled (one core; 16.8 and 5.5-5.7 s on both).
     * Threading (``cores``, else ``$DTWIN_JAX_CORES``): ``"1"`` (the default) pins the
