@@ -33,6 +33,8 @@ __all__ = ["call", "enable", "enabled", "exported"]
 
 # key -> jitted call of the exported program, so that a process traces each one once
 _LOADED: dict[str, Callable] = {}
+# _LOADED's value for a program that cannot be exported: a plain call.
+_PLAIN = object()
 # the folder of exported programs; None: plain calls (the library's default)
 _folder: Path | None = None
 
@@ -87,10 +89,6 @@ def call(name: str, fn: Callable, args: tuple, static: tuple = ()):
         run = _load_or_export(path, fn, tree, leaves)
         _LOADED[key] = run
     return fn(*args) if run is _PLAIN else run(*leaves)
-
-
-# _LOADED's value for a program that cannot be exported: a plain call.
-_PLAIN = object()
 
 
 @functools.cache
