@@ -89,3 +89,18 @@ def test_a_window_whose_step_differs_in_the_last_bits_reuses_the_compiled_smooth
     again = kinematic_smoother(ex.system.nominal, np.nextafter(1e-3, 1.0), meas.x, meas.xdot, meas.u, half_width=20)
     assert not [p for p in lowered_programs if "kinematic" in p[1]], lowered_programs
     np.testing.assert_allclose(np.asarray(again), np.asarray(first), rtol=1e-9, atol=1e-12)
+
+
+def test_structures_whose_widths_differ_share_the_compiled_smoother(lowered_programs):
+    """Another structure's nominal model gives another Savitzky-Golay width for the noise
+    fit's first guesses (here 13 and 20 samples); the smoother's program is keyed by the
+    record's shape, so monitoring structures one by one compiles it once, not once each."""
+    ex = systems.example1()
+    sim = systems.simulate_example(ex, jax.random.key(0), duration=1.0)
+    meas = measure(jax.random.key(1), sim["t"], sim["x"], sim["xdot"], sim["u"], level=0.05)
+    first = kinematic_smoother(ex.system.nominal, 1e-3, meas.x, meas.xdot, meas.u, half_width=20)
+    lowered_programs.clear()
+    other = kinematic_smoother(ex.system.nominal, 1e-3, meas.x, meas.xdot, meas.u, half_width=13)
+    assert not [p for p in lowered_programs if p[1] == "jit(_kinematic_smoother)"], lowered_programs
+    # The width only sets the first guesses: the maximum-likelihood fit ends at the same noise.
+    np.testing.assert_allclose(np.asarray(other), np.asarray(first), rtol=1e-6, atol=1e-9)

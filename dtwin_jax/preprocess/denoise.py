@@ -131,32 +131,46 @@ def kinematic_smoother(
     if half_width is None:
         half_width = auto_half_width(nominal, dt, x.shape[0])
     u = None if u is None else jnp.asarray(u)
-    hw = int(half_width)
+    # The noise fit's first guesses in a program of their own: the smoother's program is then
+    # keyed by the record's shape, not by the width (each structure's nominal model gives its
+    # own width, and compiled the whole smoother again, 2-3 s, for every structure monitored).
+    sig_x, sig_r = _first_guesses(nominal, x, xdot, u, int(half_width))
     # dt traced, not static: windows cut at other offsets have dt's that differ in the last
     # bits, and each new value compiled the program again (2.9 s) in a monitor's life.
-    return _kinematic_smoother(nominal, jnp.asarray(dt, dtype=jnp.float64), x, xdot, u, hw)
+    return _kinematic_smoother(nominal, jnp.asarray(dt, dtype=jnp.float64), x, xdot, u, sig_x, sig_r)
 
 
-# A new process (the command line) reuses the traced program (dtwin_jax._compile.aot).
-@aot.exported("kinematic_smoother", static_argnums=(5,))
-@eqx.filter_jit
-def _kinematic_smoother(nominal: LinearSecondOrder, dt, x, xdot, u, half_width: int):
-    # Compiled as a whole: run eagerly, the noise fit's loop compiled anew on every call
-    # (6 s per 1000-sample record).
-    N, m = x.shape
-    d, E = nominal.d, nominal.extra_states
+def _smooth_part(nominal: LinearSecondOrder, xdot, u):
+    """The measured rates ``xdot (N, m)`` split into the jump of the held input's force,
+    ``(N, m)`` (zero off the velocity rows), and the smooth rest ``xdot - jump``."""
+    d = nominal.d
     jump = jnp.zeros_like(xdot)
     if u is not None:
         force = mass_solve(nominal.M, nominal.B @ jnp.asarray(u).T).T  # (N, d)
         jump = jump.at[:, d : 2 * d].set(force)
+    return jump, xdot - jump
+
+
+@eqx.filter_jit  # half_width (a Python int) static
+def _first_guesses(nominal: LinearSecondOrder, x, xdot, u, half_width: int):
+    """Std of the states' and the smooth rates' noise ``((m,), (m,))`` (:func:`noise_std`)."""
+    return noise_std(x, half_width), noise_std(_smooth_part(nominal, xdot, u)[1], half_width)
+
+
+# A new process (the command line) reuses the traced program (dtwin_jax._compile.aot).
+@aot.exported("kinematic_smoother")
+@eqx.filter_jit
+def _kinematic_smoother(nominal: LinearSecondOrder, dt, x, xdot, u, sig_x, sig_r):
+    # Compiled as a whole: run eagerly, the noise fit's loop compiled anew on every call
+    # (6 s per 1000-sample record).
+    N, m = x.shape
+    d, E = nominal.d, nominal.extra_states
+    jump, smooth_part = _smooth_part(nominal, xdot, u)
     # a(t) on [t_k, t_k+1) = held part + smooth part s(t); s is integrated by trapezoid.
     held = jump[:-1]
-    smooth_part = xdot - jump
     s0, s1 = smooth_part[:-1], smooth_part[1:]
     mean_rate = held + 0.5 * (s0 + s1)  # average rate over the step
     pos_rate = held / 2 + (2 * s0 + s1) / 6  # double integral / dt^2
-    sig_x = noise_std(x, half_width)
-    sig_r = noise_std(smooth_part, half_width)
     out = x
     if d:
         F = jnp.array([[1.0, dt], [0.0, 1.0]])
