@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import functools
 
+import equinox as eqx
+
 import jax
 import jax.numpy as jnp
 
@@ -27,6 +29,7 @@ __all__ = [
 ]
 
 
+@eqx.filter_jit  # one program: called eagerly, each operation was one (a warm call loads each)
 def input_output_targets(nominal: LinearSecondOrder, x, u, xdot) -> jax.Array:
     """Eq. 14: measured rates minus the nominal rates of the regressed states.
 

@@ -437,22 +437,20 @@ def _autocorrelation_corrected(stats, nominal, lib, xs, u, rates) -> tuple[sampl
     import arviz_stats as az
 
     R, N, m = xs.shape
-    x, uu = jnp.asarray(xs).reshape(R * N, m), jnp.asarray(u).reshape(R * N, -1)
-    Y = np.asarray(input_output_targets(nominal, x, uu, jnp.asarray(rates).reshape(R * N, m)))
+    x, uu = jnp.asarray(np.reshape(xs, (R * N, m))), jnp.asarray(np.reshape(u, (R * N, -1)))
+    Y = np.asarray(input_output_targets(nominal, x, uu, jnp.asarray(np.reshape(rates, (R * N, m)))))
     L = np.asarray(lib(x, uu))
     coef, *_ = np.linalg.lstsq(L / np.linalg.norm(L, axis=0), Y, rcond=None)
     residual = (Y - (L / np.linalg.norm(L, axis=0)) @ coef).T.reshape(-1, R, N)
     n_eff = np.array([sum(float(az.ess(r[None], method="mean")) for r in eq) for eq in residual])
-    scale = jnp.asarray(np.minimum(n_eff / (R * N), 1.0))
-    scaled = sampler.SuffStats(stats.gram * scale[:, None, None], stats.xty * scale[:, None], stats.yty * scale,
-                               stats.n * scale)
+    scale = np.minimum(n_eff / (R * N), 1.0)
+    scaled = sampler.SuffStats(*(np.asarray(a) * scale.reshape((-1,) + (1,) * (np.ndim(a) - 1)) for a in stats))
     return scaled, n_eff
 
 
 def _input_output_residuals(nominal, lib, xs, u, rates, coef) -> np.ndarray:
     """Residuals ``(q, R, N)`` of every regressed equation under coefficients ``coef (q, K)``."""
     R, N, m = xs.shape
-    x, uu = jnp.asarray(xs).reshape(R * N, m), jnp.asarray(u).reshape(R * N, -1)
-    Y = input_output_targets(nominal, x, uu, jnp.asarray(rates).reshape(R * N, m))
-    coef = jnp.asarray(coef)
-    return np.asarray((Y - lib(x, uu) @ coef.T).T).reshape(-1, R, N)
+    x, uu = jnp.asarray(np.reshape(xs, (R * N, m))), jnp.asarray(np.reshape(u, (R * N, -1)))
+    Y = np.asarray(input_output_targets(nominal, x, uu, jnp.asarray(np.reshape(rates, (R * N, m)))))
+    return (Y - np.asarray(lib(x, uu)) @ np.asarray(coef).T).T.reshape(-1, R, N)

@@ -262,15 +262,24 @@ def divergence_bounds(twins: UpdatedTwin, x0, u=None) -> tuple[jax.Array, jax.Ar
     Jittable."""
     x0 = jnp.asarray(x0, dtype=float)
     if twins.state_range is not None:
-        r = jnp.asarray(twins.state_range, dtype=float)
-        centre, half = r.mean(axis=1), (r[:, 1] - r[:, 0]) / 2
-        half = jnp.where(half > 0, DIVERGENCE_FACTOR * jnp.maximum(half, jnp.abs(x0 - centre)), jnp.inf)
-        return centre - half, centre + half
-    nominal = twins.nominal
+        return _range_bounds(jnp.asarray(twins.state_range, dtype=float), x0)
+    return _fallback_bounds(twins.nominal, x0, None if u is None else jnp.asarray(u, dtype=float))
+
+
+# Each bound one program: eagerly (the prediction's set-up), each operation was one.
+@jax.jit
+def _range_bounds(r, x0):
+    centre, half = r.mean(axis=1), (r[:, 1] - r[:, 0]) / 2
+    half = jnp.where(half > 0, DIVERGENCE_FACTOR * jnp.maximum(half, jnp.abs(x0 - centre)), jnp.inf)
+    return centre - half, centre + half
+
+
+@eqx.filter_jit
+def _fallback_bounds(nominal: LinearSecondOrder, x0, u):
     d = nominal.d
     scale = jnp.abs(x0)
     if u is not None:
-        umax = jnp.max(jnp.abs(jnp.asarray(u, dtype=float)).reshape(-1, nominal.n), axis=0)
+        umax = jnp.max(jnp.abs(u).reshape(-1, nominal.n), axis=0)
         static = jnp.abs(jnp.linalg.pinv(nominal.K) @ nominal.B) @ umax
         omega = jnp.sqrt(jnp.linalg.norm(jnp.linalg.solve(nominal.M, nominal.K)))
         scale = scale.at[:d].max(static).at[d : 2 * d].max(omega * static)
@@ -299,6 +308,7 @@ def _run_paths(twins: UpdatedTwin, x0, t, u, keys, lower, upper, substeps):
     return aot.call("paths", lambda *a: _paths(*a, substeps), args, (substeps,))
 
 
+@jax.jit  # one program (eagerly, each operation was one)
 def _summary(paths, status) -> dict:
     """Mean and 95% band over the draws that finished (failed draws' paths become NaN)."""
     ok = status == systems.OK

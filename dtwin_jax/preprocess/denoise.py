@@ -19,6 +19,8 @@ tap, because the signal lives well below the filter's cutoff.
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -61,6 +63,7 @@ def auto_half_width(nominal: LinearSecondOrder, dt: float, num_samples: int) -> 
     return int(min(half_width, (num_samples - 1) // 2))
 
 
+@functools.partial(jax.jit, static_argnums=1)  # one program (eagerly, each operation was one)
 def noise_std(signal, half_width: int) -> jax.Array:
     """Std of white noise on each column of ``signal (..., N, c)``, from the SG residual."""
     h0 = float(savgol_coefficients(half_width, _ORDER)[half_width])

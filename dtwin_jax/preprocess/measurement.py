@@ -4,6 +4,7 @@ Signals are sampled on a uniform grid: `(N, c)` for one record or `(R, N, c)` fo
 `R` records, time along axis `-2`.
 """
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -129,8 +130,6 @@ def savgol_coefficients(
 def _smooth_2d(x, half_width, order, deriv, dt):
     N = x.shape[0]
     width = 2 * half_width + 1
-    if N < width:
-        raise DataError(f"signal has {N} samples, fewer than the window 2*half_width+1 = {width}")
     taps = jnp.asarray(savgol_coefficients(half_width, order, deriv))
     interior = jax.vmap(lambda col: jnp.convolve(col, taps, mode="valid"), 1, 1)(x)
     # Edges as scipy's mode="interp": evaluate the fit of the first/last window.
@@ -154,13 +153,23 @@ def smooth(
     """
     _check_window(half_width, order, deriv)
     x = jnp.asarray(x)
+    if x.ndim not in (1, 2, 3):
+        raise DataError(f"x must have shape (N,), (N, c) or (R, N, c), got {x.shape}")
+    N, width = x.shape[0 if x.ndim == 1 else -2], 2 * half_width + 1
+    if N < width:
+        raise DataError(f"signal has {N} samples, fewer than the window 2*half_width+1 = {width}")
+    return _smooth(x, dt, half_width, order, deriv)
+
+
+# One program per shape and window: called eagerly (the update's host-side steps), each of
+# its operations was a program of its own, which a new process traces and loads one by one.
+@functools.partial(jax.jit, static_argnums=(2, 3, 4))
+def _smooth(x, dt, half_width: int, order: int, deriv: int):
     if x.ndim == 1:
         return _smooth_2d(x[:, None], half_width, order, deriv, dt)[:, 0]
     if x.ndim == 2:
         return _smooth_2d(x, half_width, order, deriv, dt)
-    if x.ndim == 3:
-        return jax.vmap(lambda r: _smooth_2d(r, half_width, order, deriv, dt))(x)
-    raise DataError(f"x must have shape (N,), (N, c) or (R, N, c), got {x.shape}")
+    return jax.vmap(lambda r: _smooth_2d(r, half_width, order, deriv, dt))(x)
 
 
 def smoothing_half_width(

@@ -21,6 +21,7 @@ would be too narrow.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -258,6 +259,29 @@ def derivative_terms(lib: Library, x, u, pairs, *, grid: int = 8193) -> dict[int
     return found
 
 
+# Each of these one program: called eagerly, each operation was one (a new process traces,
+# lowers and loads every program it meets, ~10 ms each).
+@eqx.filter_jit
+def _input_rates(nominal: LinearSecondOrder, u):
+    """The nominal rates at the zero state under ``u (R, N, n)`` less those without input,
+    ``(R, N, m)``, and the rate at the zero state and input ``(m,)``."""
+    f_0 = nominal.rate(jnp.zeros(nominal.m), jnp.zeros(nominal.n))
+    return jax.vmap(nominal.rate_batch)(jnp.zeros(u.shape[:-1] + (nominal.m,)), u) - f_0, f_0
+
+
+@eqx.filter_jit
+def _windowed_library(lib, Phi, full, u, spread):
+    """The library's columns integrated against the test functions ``Phi (W, N)``, per record
+    of the states ``full (R, N, m)`` and inputs ``u (R, N, n)``: ``(R, W, K)``."""
+    return jax.vmap(lambda a, b: Phi @ lib(a, b, smoothing=spread))(full, u)
+
+
+@eqx.filter_jit
+def _rate_jacobian(nominal: LinearSecondOrder) -> jax.Array:
+    """The nominal rate's Jacobian in the states ``(m, m)``."""
+    return jax.jacfwd(nominal.rate)(jnp.zeros(nominal.m), jnp.zeros(nominal.n))
+
+
 def _operators(nominal: LinearSecondOrder, x_index):
     """Per regressed equation and measured column, the weights ``(alpha, beta, gamma)`` of
     ``Phi``, ``dPhi``, ``ddPhi`` in ``y_i = -sum_r (alpha Phi + beta dPhi + gamma ddPhi) x_r + ...``.
@@ -266,7 +290,7 @@ def _operators(nominal: LinearSecondOrder, x_index):
     columns, and the nominal Jacobian."""
     x_index = tuple(x_index)
     d, m = nominal.d, nominal.m
-    J = np.asarray(jax.jacfwd(nominal.rate)(jnp.zeros(m), jnp.zeros(nominal.n)))
+    J = np.asarray(_rate_jacobian(nominal))
     integral = np.zeros((m, len(x_index), 3))  # int phi x_s = sum_r w . (Phi, dPhi, ddPhi) x_r
     derivative = np.zeros((m, len(x_index), 3))  # int phi' x_s
     for s in range(m):
@@ -487,15 +511,12 @@ def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *
     ops = _operators(nominal, x_index)  # (q, p, 3)
     # The targets: linear in the measured states, nothing differentiated.
     integrals = np.stack([np.einsum("wn,rnp->rwp", M, x) for M in (Phi, dPhi, ddPhi)], axis=-1)  # (R, W, p, 3)
-    f_u = np.asarray(jax.vmap(nominal.rate_batch)(jnp.zeros((R, N, nominal.m)), jnp.asarray(u)))
-    f_0 = np.asarray(nominal.rate(jnp.zeros(nominal.m), jnp.zeros(nominal.n)))
+    f_u, f_0 = (np.asarray(a) for a in _input_rates(nominal, jnp.asarray(u)))
     idx = list(nominal.regressed_index)
-    f_u = f_u - f_0
     Y = -(np.einsum("rwpk,ipk->rwi", integrals, ops) + np.einsum("wn,rni->rwi", Phi_u, f_u[..., idx])
           + Phi.sum(axis=1)[None, :, None] * f_0[idx][None, None])
     # The library at the states; the exact time derivatives by parts.
-    L = np.array(jax.vmap(lambda a, b: jnp.asarray(Phi) @ lib(a, b, smoothing=spread))(jnp.asarray(full),
-                                                                                     jnp.asarray(u)))
+    L = np.array(_windowed_library(lib, jnp.asarray(Phi), jnp.asarray(full), jnp.asarray(u), jnp.asarray(spread)))
     by_parts = derivative_terms(lib, full, u, missing) if missing else {}
     for k, G in by_parts.items():
         L[..., k] = -np.einsum("wn,rn->rw", dPhi, G)
@@ -522,8 +543,7 @@ def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *
     if equation_error:  # what whitening leaves correlated (coloured model error) counts once
         for i in range(len(idx)):
             scale[i] = effective_share(Ls, Y[..., i], cov[i])
-        stats = sampler.SuffStats(stats.gram * scale[:, None, None], stats.xty * scale[:, None],
-                                  stats.yty * scale, stats.n * scale)
+        stats = sampler.SuffStats(*(np.asarray(a) * scale.reshape((-1,) + (1,) * (np.ndim(a) - 1)) for a in stats))
     names = nominal.state_names
     info = {"method": "weak-form", "width": width, "stride": stride, "power": power, "windows": int(Phi.shape[0]),
             "whitened": "white sensor noise" + (" and a white equation error (REML)" if equation_error else ""),

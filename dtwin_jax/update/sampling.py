@@ -50,7 +50,7 @@ def sample_equations(stats: sampler.SuffStats, settings: SamplerSettings, seed: 
     ``progress``: a bar of every equation's sweeps."""
     # Strongly typed float64: a weakly typed count (from a Python scalar) and a re-update's
     # summed one would otherwise be two jit signatures, and the sampler would compile twice.
-    stats = sampler.SuffStats(*(jnp.asarray(a, dtype=jnp.float64) for a in stats))
+    stats = sampler.SuffStats(*(np.asarray(a, dtype=np.float64) for a in stats))  # sliced on the host
     q = stats.xty.shape[0]
     keys = jax.random.split(jax.random.key(seed) if key is None else key, q)
     total = settings.num_burnin + settings.num_draws
