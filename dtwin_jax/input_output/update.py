@@ -444,7 +444,7 @@ def _autocorrelation_corrected(stats, nominal, lib, xs, u, rates) -> tuple[sampl
     residual = (Y - (L / np.linalg.norm(L, axis=0)) @ coef).T.reshape(-1, R, N)
     n_eff = np.array([sum(float(az.ess(r[None], method="mean")) for r in eq) for eq in residual])
     scale = np.minimum(n_eff / (R * N), 1.0)
-    scaled = sampler.SuffStats(*(np.asarray(a) * scale.reshape((-1,) + (1,) * (np.ndim(a) - 1)) for a in stats))
+    scaled = sampler.weigh(sampler.SuffStats(*(np.asarray(a) for a in stats)), scale)
     return scaled, n_eff
 
 

@@ -225,9 +225,4 @@ def _diffusion_stats(stats: sampler.SuffStats, Y, gamma, gamma_var) -> sampler.S
     n = Y.shape[0]
     missing = jnp.maximum(2.0 * gamma**2 - jnp.var(Y, axis=0), 0.0)
     scale = 2.0 * gamma**2 / gamma_var / n  # n_eff / n
-    return sampler.SuffStats(
-        stats.gram * scale[:, None, None],
-        stats.xty * scale[:, None],
-        (stats.yty + n * missing) * scale,
-        stats.n * scale,
-    )
+    return sampler.weigh(stats._replace(yty=stats.yty + n * missing), scale)

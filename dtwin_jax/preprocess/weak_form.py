@@ -543,7 +543,7 @@ def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *
     if equation_error:  # what whitening leaves correlated (coloured model error) counts once
         for i in range(len(idx)):
             scale[i] = effective_share(Ls, Y[..., i], cov[i])
-        stats = sampler.SuffStats(*(np.asarray(a) * scale.reshape((-1,) + (1,) * (np.ndim(a) - 1)) for a in stats))
+        stats = sampler.weigh(sampler.SuffStats(*(np.asarray(a) for a in stats)), scale)
     names = nominal.state_names
     info = {"method": "weak-form", "width": width, "stride": stride, "power": power, "windows": int(Phi.shape[0]),
             "whitened": "white sensor noise" + (" and a white equation error (REML)" if equation_error else ""),

@@ -186,8 +186,7 @@ def accelerometer_weak_stats(nominal: LinearSecondOrder, lib: Library, dt: float
     if equation_error:
         for i in range(d):
             scale[i] = effective_share(Ls, Y[..., i], cov[i])
-        stats = sampler.SuffStats(stats.gram * scale[:, None, None], stats.xty * scale[:, None],
-                                  stats.yty * scale, stats.n * scale)
+        stats = sampler.weigh(stats, jnp.asarray(scale))
     info = {
         "method": "weak-form (accelerometers): test functions chi'', the nominal part from the "
                   "accelerations by parts",

@@ -53,6 +53,7 @@ __all__ = [
     "GibbsInfo",
     "GibbsTrace",
     "suff_stats",
+    "weigh",
     "standardize",
     "log_marginal",
     "slots",
@@ -118,6 +119,18 @@ def suff_stats(L: jax.Array, y: jax.Array) -> SuffStats:
     L = jnp.asarray(L, dtype=jnp.float64)
     y = jnp.asarray(y, dtype=jnp.float64)
     return SuffStats(L.T @ L, L.T @ y, y @ y, jnp.asarray(L.shape[0], dtype=jnp.float64))
+
+
+def weigh(stats: SuffStats, factor) -> SuffStats:
+    """Batched equations' statistics, each counted ``factor`` times: its rows' effective
+    share (``n_eff / n``) keeps the estimates and widens the posterior to match.
+
+    **Arguments:** ``stats``: :class:`SuffStats` batched over ``q`` equations (leading axis);
+    ``factor``: ``(q,)``. NumPy in, NumPy out (host-side steps); jax arrays too.
+
+    **Returns:** :class:`SuffStats`, every field times its equation's factor.
+    """
+    return SuffStats(*(a * factor[(slice(None),) + (None,) * (a.ndim - 1)] for a in stats))
 
 
 def standardize(stats: SuffStats) -> tuple[SuffStats, jax.Array, jax.Array]:
