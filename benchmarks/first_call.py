@@ -8,7 +8,9 @@ persistent caches (`DTWIN_JAX_CACHE`) in a new temporary folder:
 
 - cold: the caches empty;
 - warm: the same command again;
-- new library: a library not run before (`poly:2,sign,input`), the caches filled by the runs above.
+- a new library of a size class compiled before: `poly:6,sign,abs,input` (33 terms, padded to
+  64 columns as the default library's 46 are), the caches filled by the runs above;
+- a new library of a new size class: `poly:2,sign,input` (9 terms, class 16), after those.
 
 The floor is `python -c "import jax, diffrax, equinox"`. Medians of `--repeats` runs (cold:
 each in its own empty folder). Writes `first_call-<host>.md` into `--out`.
@@ -26,6 +28,10 @@ import tempfile
 from pathlib import Path
 
 from shell_timing import example1_files, report, timed
+
+
+# In the order they run: each after the ones above it, in the same cache folder.
+STEPS = (("cold", None), ("warm", None), ("same", "poly:6,sign,abs,input"), ("new", "poly:2,sign,input"))
 
 
 def main():
@@ -48,21 +54,23 @@ def main():
         floor = statistics.median(timed([sys.executable, "-c", "import jax, diffrax, equinox"], dict(os.environ))
                                   for _ in range(a.repeats))
         paths = [None] + ([a.baseline] if a.baseline else [])
-        times = {path: {"cold": [], "warm": [], "new": []} for path in paths}
+        times = {path: {step: [] for step, _ in STEPS} for path in paths}
         for r in range(a.repeats):
-            for step, library in (("cold", None), ("warm", None), ("new", "poly:2,sign,input")):
+            for step, library in STEPS:
                 for i, path in enumerate(paths):
                     times[path][step].append(discover(tmp / f"cache{r}-{i}", library, path))
-    names = {"cold": "cold: caches empty", "new": "a library not run before, caches filled",
-             "warm": "warm: the same command again"}
+    names = {"cold": "cold: caches empty", "warm": "warm: the same command again",
+             "same": "a new library, its size class compiled before (`poly:6,sign,abs,input`)",
+             "new": "a new library of a new size class (`poly:2,sign,input`)"}
+    order = ("cold", "same", "new", "warm")
     med = {path: {k: statistics.median(v) for k, v in t.items()} for path, t in times.items()}
     rows = [("import floor (jax, diffrax, equinox)", floor, "1.0x")]
-    rows += [(names[k], med[None][k], f"{med[None][k] / floor:.1f}x") for k in ("cold", "new", "warm")]
+    rows += [(names[k], med[None][k], f"{med[None][k] / floor:.1f}x") for k in order]
     columns = ["call", "seconds", "ratio to the floor"]
     if a.baseline:
         columns += ["baseline seconds", "this / baseline"]
         rows = [rows[0] + ("", "")] + [row + (med[a.baseline][k], f"{row[1] / med[a.baseline][k]:.2f}")
-                                       for row, k in zip(rows[1:], ("cold", "new", "warm"))]
+                                       for row, k in zip(rows[1:], order)]
     print(report(a.out, "first_call", "First calls from the shell",
                  f"`python benchmarks/first_call.py --repeats {a.repeats}"
                  + (" --baseline DIR" if a.baseline else "") + "`: `dtwin-jax discover` on example 1 "
