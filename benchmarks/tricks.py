@@ -8,7 +8,9 @@ turned off:
 
 - exports: `dtwin_jax._compile.aot` (traced programs kept on disk for new processes);
 - quick: `dtwin_jax._compile.quick_compile` (short-running programs compiled without
-  LLVM's optimizations).
+  LLVM's optimizations);
+- level 2: `quick_compile.prefer_level_2` (the other programs at LLVM's level 2, not 3),
+  turned off by naming XLA's default level in `XLA_FLAGS`.
 
 Two commands: input-output on example 1 (1 s at 1 kHz, 5% noise, `t,x1,x2,u1`) and
 output-only on example 1's ensemble (20 records of 1 s, 5% noise, `.npz`). Writes
@@ -30,6 +32,7 @@ OFF = {
     "all on": "",
     "exports off": "from dtwin_jax._compile import aot; aot.enable = lambda folder: None",
     "quick off": "from dtwin_jax._compile import quick_compile; quick_compile.QUICK_COMPILE.clear()",
+    "level 2 off": "import os; os.environ['XLA_FLAGS'] = os.environ.get('XLA_FLAGS', '') + ' --xla_backend_optimization_level=3'",
 }
 
 

@@ -37,7 +37,10 @@ def configure_runtime(cores: str | None = None, cache: str | None = None, platfo
       input-output update: 3.4 s on an H200 against 0.94 s on one core of the same machine,
       0.34 s here); a study of thousands of chains runs ~57x one core's rate there
       (``benchmarks/accelerator.py``). The command line picks
-      ``"cpu"`` for its single updates and ``"auto"`` for ``sweep``.
+      ``"cpu"`` for its single updates and ``"auto"`` for ``sweep``. On ``"cpu"`` the
+      programs compile at LLVM's optimization level 2 instead of XLA's 3 (appended to
+      ``$XLA_FLAGS`` unless it sets a level): a cold ``discover`` of example 1 took 13.7 s
+      against 15.9 s, and every program measured ran as fast (docs/performance.md).
 
     Pinning must come before JAX starts its CPU backend (the first computation): pinning
     every thread afterwards made a chain take 81 s. Returns what was set. Bad values raise
@@ -50,8 +53,12 @@ def configure_runtime(cores: str | None = None, cache: str | None = None, platfo
     if platform not in ("cpu", "auto"):
         raise DataError(f"DTWIN_JAX_PLATFORM must be cpu or auto, got {platform!r}")
     if platform == "cpu":
+        from dtwin_jax._compile.quick_compile import prefer_level_2
+
         jax.config.update("jax_platforms", "cpu")
         done["platform"] = "cpu"
+        if prefer_level_2():
+            done["xla_flags"] = os.environ["XLA_FLAGS"]
     cache = cache or os.environ.get("DTWIN_JAX_CACHE", os.path.join(Path.home(), ".cache", "dtwin-jax", "jax"))
     if cache != "off":
         from dtwin_jax._compile import aot

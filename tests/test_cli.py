@@ -1,6 +1,7 @@
 """The command line: bad input gets a one-line error and no output file; discover and demo work."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -148,8 +149,6 @@ def test_runtime_set_up_is_the_command_line_s_only(tmp_path):
     Python leaves the caller's process alone (`dtwin_jax.configure_runtime()` is the opt-in);
     a bad DTWIN_JAX_CORES or DTWIN_JAX_PLATFORM is a one-line error. `platform="cpu"` keeps JAX
     on the CPU (the command line's choice for single updates, where a GPU is slower)."""
-    import os
-
     before = os.sched_getaffinity(0)
     assert main(["sweep", "--levels", "2", "--out-dir", str(tmp_path / "s")]) == 2  # fails fast, after set-up
     assert os.sched_getaffinity(0) == before
@@ -164,3 +163,22 @@ def test_runtime_set_up_is_the_command_line_s_only(tmp_path):
     env = dict(os.environ, DTWIN_JAX_CACHE=str(tmp_path / "cache"), DTWIN_JAX_CORES="1")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
     assert str(tmp_path / "cache") in out and out.strip().endswith("cpu cpu 1")
+
+
+def test_the_command_line_s_cpu_programs_compile_at_llvm_level_2_unless_the_user_set_one(tmp_path):
+    """`configure_runtime(platform="cpu")` appends XLA's backend optimization level 2 to
+    $XLA_FLAGS (the sampler's chunk compiles 25% sooner and runs as fast:
+    docs/performance.md); a level the user set stands, and `"auto"` (a GPU maybe) adds none."""
+    # jax._src.compiler: the options XLA compiles with, as JAX builds them for every program.
+    code = ("from dtwin_jax import configure_runtime; import os, sys; done = configure_runtime(platform=sys.argv[1]); "
+            "from jax._src import compiler; "
+            "print(compiler.get_compile_options(1, 1).executable_build_options.debug_options"
+            ".xla_backend_optimization_level, os.environ.get('XLA_FLAGS', ''), 'xla_flags' in done)")
+    for platform, flags, expected in [("cpu", None, "2 --xla_backend_optimization_level=2 True"),
+                                      ("cpu", "--xla_backend_optimization_level=1", "1 --xla_backend_optimization_level=1 False"),
+                                      ("auto", None, "3  False")]:
+        env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_DISABLE_MOST_OPTIMIZATIONS")}
+        env.update(DTWIN_JAX_CACHE="off", DTWIN_JAX_CORES="all", **({"XLA_FLAGS": flags} if flags else {}))
+        out = subprocess.run([sys.executable, "-c", code, platform], capture_output=True, text=True, env=env,
+                             check=True, cwd=tmp_path).stdout
+        assert out.strip() == expected.strip() and out.count(" ") == 2, (platform, flags, out)
