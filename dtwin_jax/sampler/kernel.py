@@ -360,6 +360,13 @@ def _sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrior, R: int)
     return state[5], changed, initial
 
 
+def _pick(u, weights):
+    """The index drawn with probability proportional to ``weights (K,)`` (non-negative) by
+    the inverse CDF at the uniform ``u``; ``K - 1`` when every weight is zero."""
+    cdf = jnp.cumsum(weights)
+    return jnp.minimum(jnp.sum(cdf <= u * cdf[-1]), weights.shape[0] - 1).astype(jnp.int32)
+
+
 def _swap(key, gamma, current, v_s, stats: SuffStats, prior: SpikeSlabPrior):
     """One Metropolis-Hastings exchange move on the indicators at fixed ``v_s``.
 
@@ -395,7 +402,10 @@ def _swap(key, gamma, current, v_s, stats: SuffStats, prior: SpikeSlabPrior):
     R = slot_idx.shape[0]
     G, b = stats.gram, stats.xty
     dtype = G.dtype
-    k_j, k_k, k_u = jax.random.split(key, 3)
+    # One random call for the move's three variates, the two picks by inverse CDF: three
+    # calls (a split, two categoricals, a uniform) cost twice as much (5 against 11 us a
+    # sweep at K = 36, one pinned core), a fifth of the whole sweep.
+    u_j, u_k, u_accept = jax.random.uniform(key, (3,), dtype=dtype)
     norm2 = jnp.maximum(jnp.diagonal(G), jnp.finfo(dtype).tiny)
 
     def weights(i):  # squared cosines of column i with every column, floored so every exchange has a reverse
@@ -404,10 +414,10 @@ def _swap(key, gamma, current, v_s, stats: SuffStats, prior: SpikeSlabPrior):
     r = jnp.sum(gamma)
     present = present_terms(stats)
     possible = (r >= 1) & (r < jnp.sum(present))
-    j = jax.random.categorical(k_j, jnp.where(gamma, 0.0, -jnp.inf))
+    j = _pick(u_j, gamma.astype(dtype))
     out = ~gamma & present
     w_j = weights(j)
-    k = jax.random.categorical(k_k, jnp.where(out, jnp.log(w_j), -jnp.inf))
+    k = _pick(u_k, jnp.where(out, w_j, 0.0))
     w_k = weights(k)
     forward = jnp.sum(jnp.where(out, w_j, 0.0))
     backward = jnp.sum(jnp.where(out, w_k, 0.0)) - w_k[k] + w_k[j]
@@ -433,7 +443,7 @@ def _swap(key, gamma, current, v_s, stats: SuffStats, prior: SpikeSlabPrior):
         - jnp.log(backward)
     )
     # A degenerate exchange (s <= 0 by rounding: NaN) compares False and is rejected.
-    accept = possible & (s > 0) & (jnp.log(jax.random.uniform(k_u, dtype=dtype)) < log_ratio)
+    accept = possible & (s > 0) & (jnp.log(u_accept) < log_ratio)
     new_idx = jnp.where(slot_idx == j, k, slot_idx).astype(slot_idx.dtype)
 
     def exchanged(_):
