@@ -403,7 +403,7 @@ def _swap(key, gamma, current, v_s, stats: SuffStats, prior: SpikeSlabPrior):
     G, b = stats.gram, stats.xty
     dtype = G.dtype
     # One random call for the move's three variates, the two picks by inverse CDF: three
-    # calls (a split, two categoricals, a uniform) cost twice as much (5 against 11 us a
+    # calls (a split, two categoricals, a uniform) cost twice as much (6 against 11 us a
     # sweep at K = 36, one pinned core), a fifth of the whole sweep.
     u_j, u_k, u_accept = jax.random.uniform(key, (3,), dtype=dtype)
     norm2 = jnp.maximum(jnp.diagonal(G), jnp.finfo(dtype).tiny)
