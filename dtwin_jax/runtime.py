@@ -39,8 +39,8 @@ def configure_runtime(cores: str | None = None, cache: str | None = None, platfo
       (``benchmarks/accelerator.py``). The command line picks
       ``"cpu"`` for its single updates and ``"auto"`` for ``sweep``. On ``"cpu"`` the
       programs compile at LLVM's optimization level 2 instead of XLA's 3 (appended to
-      ``$XLA_FLAGS`` unless it sets a level): a cold ``discover`` of example 1 took 13.7 s
-      against 15.9 s, and every program measured ran as fast (docs/performance.md).
+      ``$XLA_FLAGS`` unless it sets a level): a cold ``discover`` compiles sooner and every
+      program measured runs as fast (docs/performance.md, "Compiling less").
 
     Pinning must come before JAX starts its CPU backend (the first computation): pinning
     every thread afterwards made a chain take 81 s. Returns what was set. Bad values raise
