@@ -27,6 +27,7 @@ from dtwin_jax.library import Library, TermTable, eval_terms, parse_library, ter
 from dtwin_jax.models import systems
 from dtwin_jax.models.systems import LinearSecondOrder
 from dtwin_jax.resources import check_posterior_draws, check_prediction
+from dtwin_jax.sampler.driver import batch_map, default_batch_method
 
 __all__ = ["UpdatedTwin", "posterior_twins", "predict", "simulation_error", "with_model_error", "effective_stiffness",
            "degradation_forecast", "divergence_bounds", "fixed_substeps", "is_nonsmooth", "PredictionWarning",
@@ -293,11 +294,18 @@ def _paths(twins: UpdatedTwin, x0, t, u, keys, lower, upper, substeps):
     if twins.stochastic:
         run = lambda c, dc, k: systems.simulate_sde_checked(_one(twins, c, dc), x0, t, k, lower, upper)
         return jax.vmap(run)(twins.coefficients, twins.diffusion_coefficients, keys)
+    # The adaptive solve one draw after another on the CPU: vmapped, every draw takes every
+    # draw's steps, through selects (example 1's 30 draws over 10 s: 6.4 s vmapped, 3.1 s
+    # mapped, one core). Fixed steps (the SDE above, non-smooth or band-limited twins) vmap.
+    adaptive = substeps is None and twins.interpolation != "bandlimited"
+    method = default_batch_method() if adaptive else "vectorized"
     run = lambda c, uu: systems.simulate_checked(
         _one(twins, c, None), x0, t, uu, lower, upper, rtol=1e-8, atol=1e-10, interpolation=twins.interpolation,
         substeps=substeps,
     )
-    return jax.vmap(run, (0, 0 if u.ndim == 3 else None))(twins.coefficients, u)
+    if u.ndim == 3:
+        return batch_map(run, method, twins.coefficients, u)
+    return batch_map(lambda c: run(c, u), method, twins.coefficients)
 
 
 def _run_paths(twins: UpdatedTwin, x0, t, u, keys, lower, upper, substeps):
