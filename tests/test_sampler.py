@@ -256,6 +256,9 @@ def test_a_library_of_17_to_24_terms_samples_in_24_slots_with_the_draws_of_32(K)
     settings = S.SamplerSettings(num_chains=2, num_draws=300, num_burnin=100)
     default = S.sample_in_chunks(jax.random.key(1), st, settings)
     wide = S.sample_in_chunks(jax.random.key(1), st, settings, max_active=32)
-    for name in ("gamma", "theta", "sigma2"):
-        np.testing.assert_array_equal(getattr(default, name), getattr(wide, name))
+    # The same draws; compiled with XLA's passes (JAX_DISABLE_MOST_OPTIMIZATIONS=0), the two
+    # programs' sums may round differently (2e-16 seen), never enough to flip an inclusion.
+    np.testing.assert_array_equal(default.gamma, wide.gamma)
+    for name in ("theta", "sigma2"):
+        np.testing.assert_allclose(getattr(default, name), getattr(wide, name), rtol=1e-12, atol=1e-15)
     assert default.gamma.mean(axis=(0, 1))[:2].min() == 1.0
