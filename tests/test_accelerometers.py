@@ -181,3 +181,36 @@ def test_widened_draws_have_the_fixed_points_covariance():
     assert abs(sd[0] / (np.sqrt(0.1**2 + 0.05**2) / np.sqrt(0.1)) - 1) < 0.02, sd
     assert abs(sd[1] / 0.2 - 1) < 0.02, sd
     assert abs(out[0, ..., 0].mean() - 2.0) < 0.01
+
+
+def test_states_that_never_settle_are_named_in_a_warning(duffing):
+    """The anchor's loop ends at its iteration limit in its first phase, the states still
+    moving, when its selection never settles (here one that adds and drops the cubic at every
+    call), and the update then warns that its terms are unreliable; a steady selection
+    converges silently. (On the zoo's first 40 members from accelerometers alone it named
+    exactly the two whose terms failed, the output-only route's zoo-0018 and zoo-0038.)"""
+    from dtwin_jax.library import parse_library
+    from dtwin_jax.preprocess.accelerometers import accelerometer_states, unsettled_warnings
+
+    nominal, t, a, u, _ = duffing
+    lib = parse_library("poly:3", nominal.m, nominal.n)
+    cubic = np.zeros((1, lib.K))
+    cubic[0, lib.names.index("x1**3")] = -1e5
+    calls = []
+
+    def flipping(xs):
+        calls.append(None)
+        return cubic if len(calls) % 2 else np.zeros_like(cubic)
+
+    runs = {}
+    for name, select in [("flipping", flipping), ("steady", lambda xs: cubic)]:
+        _, _, info = accelerometer_states(nominal, 1e-3, a[None], (1,), u[None], lib, select, max_iterations=6,
+                                          error_draws=0)
+        runs[name] = info
+    flipped, steady = runs["flipping"], runs["steady"]
+    assert not flipped["crossover_released"] and not flipped["converged"] and flipped["anchor_iterations"] == 6
+    assert flipped["last_change"] > 0.01
+    (warning,) = unsettled_warnings(flipped)
+    assert "did not settle (6 iterations of the anchor, 0 terms in it at the end)" in warning
+    assert steady["crossover_released"] and steady["converged"] and steady["anchor_iterations"] < 6
+    assert unsettled_warnings(steady) == []

@@ -9,7 +9,7 @@ import numpy as np
 from dtwin_jax.errors import DataError
 from dtwin_jax.library import Library, parse_library
 from dtwin_jax.models.systems import LinearSecondOrder
-from dtwin_jax.preprocess.accelerometers import state_feedback
+from dtwin_jax.preprocess.accelerometers import state_feedback, unsettled_warnings
 from dtwin_jax.preprocess.weak_form_accelerometers import (
     accelerometer_weak_stats,
     constant_columns,
@@ -52,12 +52,13 @@ def accelerometer_regression(nominal: LinearSecondOrder, lib: Library, dt: float
     **Returns:** ``(stats, info, feedback or None, warnings)``: the
     :class:`~dtwin_jax.sampler.SuffStats` of the velocity equations, the weak form's
     description, :func:`~dtwin_jax.preprocess.accelerometers.state_feedback`'s result, and warnings."""
+    warnings = unsettled_warnings(states_info)
     draws, coef = states_info.pop("error_draws", None), states_info.pop("coefficients")
     if coef is not None:  # the loop's coefficients on the library as reduced since
         coef = coef[:, [list(loop_names).index(name) for name in lib.names]]
     stats, info = accelerometer_weak_stats(nominal, lib, dt, a, u, x, interpolation=interpolation,
                                            state_draws=draws, coef=coef)
-    feedback, warnings = None, []
+    feedback = None
     if coef is not None and draws is not None:
         feedback = state_feedback(nominal, lib, dt, a, u, x, coef, draws, interpolation=interpolation)
         widening = float(np.max(np.linalg.svd(feedback["gain"], compute_uv=False), initial=1.0))

@@ -46,6 +46,7 @@ from dtwin_jax.preprocess.accelerometers import (
     accelerometer_layout,
     accelerometer_states,
     selected_least_squares,
+    unsettled_warnings,
     widened_draws,
 )
 from dtwin_jax.preprocess.estimate import measured_index
@@ -141,6 +142,7 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
                 acceleration_noise_std=None if sensor is None else np.sqrt(sensor))
             _, weak = accelerometer_weak_stats(nominal, lib, dt, a, u, xs, interpolation=_INTERPOLATION)
             sensor, force = _split(weak)
+        warnings += unsettled_warnings(states_info)
     with stages("drift sampling"):
         draws, coef = states_info.pop("error_draws", None), states_info.pop("coefficients")
         stats = with_previous(increment_stats(nominal, lib, dt, a, xs), "drift", previous, forget)
