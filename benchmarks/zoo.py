@@ -53,7 +53,7 @@ def _layout(nominal, layout: str, meas):
 
 def _update(member: zoo.Member, framework: str, records: int, settings: SamplerSettings,
             layout: str = "accelerations", duration: float | None = None):
-    """Simulate and measure one member, update its twin; returns the drift equations."""
+    """Simulate and measure one member, update its twin; returns the update's result."""
     ex, level = member.example, member.noise_level
     sim_key = jax.random.fold_in(jax.random.key(member.seed), 1)  # not the pilot's key
     noise_key = jax.random.fold_in(jax.random.key(member.seed), 2)
@@ -75,7 +75,7 @@ def _update(member: zoo.Member, framework: str, records: int, settings: SamplerS
         x = add_noise(noise_key, sim["x"], level, per_record=False)  # one sensor per state
         result = update_output_only(nominal, sim["t"], x, library=ex.library_output_only,
                                     settings=settings, seed=member.seed)
-    return result.equations
+    return result
 
 
 def score(member: zoo.Member, equations) -> dict:
@@ -164,7 +164,9 @@ def main():
         start = time.perf_counter()
         member = zoo.draw_member(a.seed + i)
         try:
-            row = score(member, _update(member, a.framework, a.records, settings, a.layout, a.duration))
+            result = _update(member, a.framework, a.records, settings, a.layout, a.duration)
+            row = score(member, result.equations)
+            row["unsettled"] = any("did not settle" in w for w in result.checks.get("preprocessing", {}).get("warnings", []))
             failure = None
         except Exception as e:  # a failed update is a result too: scored as wrong
             row = {"support_exact": False, "support": {}, "terms": [
@@ -183,9 +185,12 @@ def main():
         print(f"{member.example.name}: support {'ok' if row['support_exact'] else 'WRONG ' + str(extra)}; "
               f"{errors}; " + "".join(f"diffusion {d['state']} {d['selected']} {100 * d['error']:.1f}%; "
                                       for d in row.get("diffusion", []))
-              + f"{seconds:.1f} s" + (f"; FAILED {failure}" if failure else ""), flush=True)
+              + f"{seconds:.1f} s" + ("; warned: states did not settle" if row.get("unsettled") else "")
+              + (f"; FAILED {failure}" if failure else ""), flush=True)
     print()
     print(table(rows), flush=True)
+    warned = [r["name"] for r in rows if r.get("unsettled")]
+    print(f"warned that the accelerometers' states did not settle: {', '.join(warned) or 'none'}", flush=True)
     if a.json:
         with open(a.json, "w") as f:
             json.dump({"framework": a.framework, "layout": a.layout, "duration": a.duration, "members": a.members, "seed": a.seed,

@@ -386,7 +386,7 @@ def unsettled_warnings(info: dict) -> list[str]:
     selection that keeps changing, and the terms regressed on them are not to be trusted,
     however sharp their intervals. On zoo members 0-39 from accelerometers alone it names
     exactly the two whose terms failed, the cubic couplings zoo-0018 and zoo-0038 of the
-    output-only route (25 and 24 terms in the anchor; 14 of the 19 true coefficients outside
+    output-only route (25 and 24 terms in the anchor; 14 of the 21 true coefficients outside
     their 95% intervals), and none of the input-output route. A loop that ends unconverged in
     its second phase is not warned about: with a Coulomb term the input-output states move
     0.1-0.2% a step for ever (zoo-0014, -0024, -0029: exact, every interval holds the truth)."""
