@@ -381,15 +381,18 @@ def accelerometer_states(nominal: LinearSecondOrder, dt: float, xdot, xdot_index
 
 
 def unsettled_warnings(info: dict) -> list[str]:
-    """A warning when :func:`accelerometer_states` (its ``info``) ran out of iterations before
-    its first phase (the anchor below the crossover) settled: the states then follow a
-    selection that keeps changing, and the terms regressed on them are not to be trusted,
-    however sharp their intervals. On zoo members 0-39 from accelerometers alone it names
-    exactly the two whose terms failed, the cubic couplings zoo-0018 and zoo-0038 of the
-    output-only route (25 and 24 terms in the anchor; 14 of the 21 true coefficients outside
-    their 95% intervals), and none of the input-output route. A loop that ends unconverged in
-    its second phase is not warned about: with a Coulomb term the input-output states move
-    0.1-0.2% a step for ever (zoo-0014, -0024, -0029: exact, every interval holds the truth)."""
+    """A warning when :func:`accelerometer_states` ran out of iterations before its first
+    phase (the anchor below the crossover) settled: the states then follow a selection that
+    keeps changing, and the terms regressed on them are not to be trusted, however sharp
+    their intervals. A loop that ends unconverged in its second phase is not warned about:
+    with a Coulomb term the states move by a fraction of a percent a step for ever, and the
+    terms hold (the zoo's measurements: the documentation's Which sensors page).
+
+    **Arguments:**
+
+    - ``info``: the states' ``info`` dict of :func:`accelerometer_states`.
+
+    **Returns:** a list of zero or one warning lines."""
     if info.get("crossover_released", True):
         return []
     terms = sum(len(v) for v in info.get("anchor_terms", {}).values())
