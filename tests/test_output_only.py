@@ -111,6 +111,7 @@ def test_example3_output_only_at_5_percent_noise():
                                  round_trip=False)
 
 
+@pytest.mark.slow  # the long record and the command line on example 1's data run this pipeline by default
 def test_example1_output_only_at_20_percent_noise_keeps_the_support():
     ex, t, x = _ensemble("example1", level=0.20)
     result = update_output_only(ex.system.nominal, t, x, library=ex.library_output_only, settings=FAST)

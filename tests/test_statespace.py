@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from dtwin_jax.models import systems
 from dtwin_jax.output_only import kramers_moyal, statespace
@@ -27,6 +28,7 @@ def test_segments_share_their_end_samples():
     assert float(seg[3, 0, 0]) == 2501.0  # record 2 starts a new piece
 
 
+@pytest.mark.slow  # every default-run output-only update (tests/test_output_only.py) maximizes this likelihood
 def test_likelihood_recovers_example2_diffusion_where_preaveraging_fails():
     ex = systems.example2()
     nominal = ex.system.nominal
