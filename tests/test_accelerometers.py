@@ -214,3 +214,31 @@ def test_states_that_never_settle_are_named_in_a_warning(duffing):
     assert "did not settle (6 iterations of the anchor, 0 terms in it at the end)" in warning
     assert steady["crossover_released"] and steady["converged"] and steady["anchor_iterations"] < 6
     assert unsettled_warnings(steady) == []
+
+
+def test_a_long_record_is_cut_into_segments_whose_dense_rows_fit_the_budget(duffing, monkeypatch):
+    """The rows' (W, W) matrices grow as the square of the record: a record over the budget is
+    cut into segments, each a record of its own (the same statistics as those segments passed
+    as records), and one under it is left whole."""
+    import dtwin_jax.preprocess.weak_form_accelerometers as wfa
+    from dtwin_jax.library import parse_library
+
+    nominal, t, a, u, x = duffing
+    lib = parse_library("poly:3", 2, 1)
+    a, u, x = a[None], u[None], x[None]  # one record of 2000 samples
+    width = wfa.weak_windows(nominal, 1e-3, a.shape[1])[0]  # 199 (example 1: 5 Hz)
+    # The killed case: 160 s at 1 kHz, a 12 Hz SDOF (width 84): 4 segments of 40 s, under the budget.
+    n = wfa.segment_samples(160_000, 84, 1)
+    assert n == 40_000 and 8 * 14 * ((n - 84) // 10 + 1) ** 2 <= wfa._SEGMENT_BYTES
+    assert wfa.segment_samples(40_000, 69, 1) == 40_000  # every 40 s zoo window stays whole
+    whole, info = wfa.accelerometer_weak_stats(nominal, lib, 1e-3, a, u, x)
+    assert info["segments"] == 1 and info["segment_samples"] == 2000
+    monkeypatch.setattr(wfa, "_SEGMENT_BYTES", 8 * 14 * ((1000 - width) // (width // 8) + 1) ** 2)
+    assert wfa.segment_samples(2000, width, 1) == 1000
+    cut, info = wfa.accelerometer_weak_stats(nominal, lib, 1e-3, a, u, x)
+    assert info["segments"] == 2 and info["segment_samples"] == 1000
+    halves = [v.reshape(2, 1000, -1) for v in (a, u, x)]
+    as_records, _ = wfa.accelerometer_weak_stats(nominal, lib, 1e-3, *halves)
+    for c, r, w in zip(cut, as_records, whole):
+        np.testing.assert_array_equal(np.asarray(c), np.asarray(r))
+    assert float(cut.n[0]) < float(whole.n[0])  # the windows across the cut are lost

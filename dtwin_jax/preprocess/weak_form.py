@@ -46,7 +46,7 @@ from dtwin_jax.preprocess.measurement import (
 __all__ = ["weak_windows", "weak_window_fits", "check_window", "window_filter", "window_grams", "window_quadrature",
            "weak_layout_supported", "weak_stats",
            "weak_input_output_stats", "derivative_terms", "reml_weight", "effective_share", "bump_functions",
-           "TEST_POWER"]
+           "TEST_POWER", "cut_segments"]
 
 TEST_POWER = 6
 _STRIDES = 8  # windows per window width
@@ -98,7 +98,7 @@ def _segment_length(num_samples: int, width: int, stride: int) -> int:
     return n
 
 
-def _segments(a: np.ndarray, length: int) -> np.ndarray:
+def cut_segments(a: np.ndarray, length: int) -> np.ndarray:
     """``(R, N, c)`` -> ``(R * (N // length), length, c)``; the remainder is dropped."""
     R, N, c = a.shape
     k = N // length
@@ -502,9 +502,9 @@ def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *
     missing = [(i - nominal.d, i) for i in range(nominal.m) if i not in x_index]
     length = _segment_length(t.size, width, stride)
     if length < t.size:  # a long record: segments, each a record of its own
-        x, u, full = _segments(x, length), _segments(u, length), _segments(full, length)
+        x, u, full = cut_segments(x, length), cut_segments(u, length), cut_segments(full, length)
         if reference is not None:
-            fitted = _segments(fitted, length)
+            fitted = cut_segments(fitted, length)
     R, N, _ = x.shape
     Phi, dPhi, Phi_u, ddPhi = window_quadrature(N, dt, width, stride, power, held=interpolation == "held",
                                                 second=True)

@@ -36,6 +36,7 @@ from dtwin_jax.preprocess.denoise import auto_half_width, noise_std
 from dtwin_jax.preprocess.weak_form import (
     TEST_POWER,
     bump_functions,
+    cut_segments,
     check_window,
     effective_share,
     reml_weight,
@@ -45,7 +46,15 @@ from dtwin_jax.preprocess.weak_form import (
     window_grams,
 )
 
-__all__ = ["accelerometer_kernels", "accelerometer_weak_stats", "constant_columns", "equivalent_linear"]
+__all__ = ["accelerometer_kernels", "accelerometer_weak_stats", "constant_columns", "equivalent_linear",
+           "segment_samples"]
+
+# A record is cut into segments, each a record of its own, so that the rows' dense (W, W)
+# matrices (the filters' nine Gram matrices and about five per equation) stay under this: they
+# grow as the square of the record's length: zoo-0005's update (an 11 Hz SDOF) peaked at 2.4 GB
+# at 40 s, 7.1 GB at 80 s, and was killed for memory at 160 s (2.4 GB at 80 s with segments).
+# Every 40 s window of zoo members 0-49 stays whole (2.6 GiB at most).
+_SEGMENT_BYTES = 3 << 30
 
 
 def accelerometer_kernels(dt: float, width: int, held: bool,
@@ -73,6 +82,17 @@ def constant_columns(lib: Library, x, u) -> list[int]:
     L = np.asarray(lib(jnp.asarray(np.reshape(x, (-1, m))), jnp.asarray(np.reshape(u, (-1, u.shape[-1])))))
     spread = np.max(L, axis=0) - np.min(L, axis=0)
     return [k for k in range(L.shape[1]) if spread[k] <= 1e-12 * max(np.max(np.abs(L[:, k])), 1e-300)]
+
+
+def segment_samples(num_samples: int, width: int, d: int) -> int:
+    """The longest segment (at most ``num_samples``, at least 4 windows; halving) whose rows'
+    dense matrices fit ``_SEGMENT_BYTES``: ``W`` windows of ``width`` samples every
+    ``width // 8``, ``(9 + 5 d) W^2`` doubles for ``d`` equations."""
+    stride = max(1, width // 8)
+    n = num_samples
+    while n > 4 * width and 8 * (9 + 5 * d) * ((n - width) // stride + 1) ** 2 > _SEGMENT_BYTES:
+        n = max(4 * width, n // 2)
+    return n
 
 
 def _rows(nominal: LinearSecondOrder, dt: float, a, u, interpolation: str, width, power: int) -> dict:
@@ -150,6 +170,13 @@ def accelerometer_weak_stats(nominal: LinearSecondOrder, lib: Library, dt: float
     **Returns:** ``(SuffStats`` batched over the velocity equations (all ``K`` columns;
     columns constant on the data are zero)``, description dict)``."""
     a, u, x = (np.asarray(v, dtype=np.float64) for v in (a, u, x))
+    d = a.shape[-1]
+    width = weak_windows(nominal, dt, a.shape[1])[0] if width is None else int(width)
+    length = segment_samples(a.shape[1], width, d)
+    if length < a.shape[1]:  # a long record: segments, each a record of its own
+        a, u, x = (cut_segments(v, length) for v in (a, u, x))
+        if state_draws is not None:
+            state_draws = np.stack([cut_segments(np.asarray(s), length) for s in state_draws])
     R, N, d = a.shape
     m = nominal.m
     rows = _rows(nominal, dt, a, u, interpolation, width, power)
@@ -191,6 +218,7 @@ def accelerometer_weak_stats(nominal: LinearSecondOrder, lib: Library, dt: float
         "method": "weak-form (accelerometers): test functions chi'', the nominal part from the "
                   "accelerations by parts",
         "width": rows["width"], "stride": rows["stride"], "power": power, "windows": int(Y.shape[1]),
+        "segments": int(R), "segment_samples": int(N),
         "acceleration_noise_std": np.sqrt(noise_var).tolist(),
         "effective_share": scale.tolist(),
         "equation_error_share": [float(w * np.trace(S_w) / (w * np.trace(S_w) + np.trace(base[i])))
