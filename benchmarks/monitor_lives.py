@@ -52,7 +52,7 @@ def _layout(window, layout):
     raise ValueError(layout)
 
 
-def life(seed, kind, W, k, layout, framework, false_alarm, forget, seconds):
+def life(seed, kind, W, k, layout, framework, false_alarm, forget, seconds, stop_at_detection=False):
     member = zoo.draw_member(seed)
     ex = member.example._replace(duration=seconds)
     failure = float(np.random.default_rng(seed).uniform(1.5, 3.0) * W * seconds) if kind == "weakening" else None
@@ -68,7 +68,12 @@ def life(seed, kind, W, k, layout, framework, false_alarm, forget, seconds):
     base = update_from_data(mode, ex.system.nominal, data[0], library=library, settings=MONITOR_SETTINGS)
     mon = Monitor(base, false_alarm=false_alarm, forget=forget)
     t0 = time.perf_counter()
-    entries = [mon.step(d, source=f"w{i}") for i, d in enumerate(data[1:], start=1)]
+    entries = []
+    for i, d in enumerate(data[1:], start=1):
+        entries.append(mon.step(d, source=f"w{i}"))
+        # What follows the first alarm at or after the change cannot change the life's result.
+        if stop_at_detection and kind in ("term", "stiffness") and i >= k and entries[-1]["alarm"]:
+            break
     alarms = [i for i, e in enumerate(entries, start=1) if e["alarm"]]
     if kind == "weakening":  # the remaining life at the last window, from the stiffness's trend
         nominal = ex.system.nominal
@@ -131,6 +136,8 @@ def main():
     ap.add_argument("--forget", type=float, default=0.9)
     ap.add_argument("--out", default=None)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--stop-at-detection", action="store_true", help="a term or stiffness life ends at its first "
+                    "alarm at or after the change (the same result; the seconds per window then leave out the rest)")
     a = ap.parse_args()
     if a.false_alarm is None:  # an explicit 0 goes on to the monitor's one-line error
         a.false_alarm = FALSE_ALARM[a.framework]
@@ -140,7 +147,8 @@ def main():
     for seed in (s for s in seeds if a.kind != "weakening" or zoo.draw_member(s).example.system.nominal.d == 1):
         if len(rows) == a.lives:
             break
-        r = life(seed, a.kind, a.windows, a.change_at, a.layout, a.framework, a.false_alarm, a.forget, a.seconds)
+        r = life(seed, a.kind, a.windows, a.change_at, a.layout, a.framework, a.false_alarm, a.forget, a.seconds,
+                 a.stop_at_detection)
         rows.append(r)
         print(json.dumps(r), flush=True)
     if a.kind == "weakening":
