@@ -8,7 +8,9 @@ As a pytest plugin (``-p compile_log``), each worker appends ``seconds, phase, p
 test`` to ``$COMPILE_LOG.<worker>`` for every top-level trace (``trace``), lowering to MLIR
 (``lower``) and XLA compilation (``compile``) that JAX logs (``jax_log_compiles``), and a
 ``hit`` row for every program found in the persistent cache (the ``compile`` row that
-follows it is then its load time, summed apart); each row ends with the call site, the
+follows it is then its load time, summed apart), and a ``write`` row with the cache key for
+every program written to the persistent cache (a key written twice is a program compiled
+twice, by both workers or by one); each row ends with the call site, the
 innermost frame of the package (outside ``dtwin_jax/_compile``), the tests or the
 benchmarks. Run as a script, it sums the logs by phase, by program, by call site and by
 test into ``suite_compiles-<host>.md``. Subprocesses (the command-line tests, the notebooks'
@@ -62,6 +64,20 @@ def pytest_configure(config):
     for name in ("jax._src.dispatch", "jax._src.compiler", "jax._src.interpreters.pxla"):
         logging.getLogger(name).addHandler(keep)
 
+    class Written(logging.Handler):
+        """Every persistent-cache write, by key: a key written by both workers is a program
+        compiled twice (JAX logs the write at DEBUG)."""
+
+        def emit(self, record):
+            message = record.getMessage()
+            if message.startswith("Writing ") and " with key " in message:
+                out.write(f"0\twrite\t{message.split(' with key ')[1].strip(chr(39))}\t{_current[0]}\t{_call_site()}\n")
+                out.flush()
+
+    cache_log = logging.getLogger("jax._src.compilation_cache")
+    cache_log.addHandler(Written(level=logging.DEBUG))
+    cache_log.setLevel(logging.DEBUG)
+
 
 def _call_site() -> str:
     """The innermost frame of the package (not its ``_compile`` wrappers), the tests or the
@@ -94,7 +110,7 @@ def main():
     p.add_argument("--out", default="benchmarks/results")
     p.add_argument("--top", type=int, default=25)
     a = p.parse_args()
-    rows = []
+    rows, written = [], collections.Counter()
     for f in (f for f in glob.glob(a.log + ".*") if not f.endswith(".shapes")):
         hit = False
         for line in open(f):
@@ -102,6 +118,9 @@ def main():
             if len(row) == 4:  # a log from before call sites
                 row.append("?")
             if len(row) != 5:
+                continue
+            if row[1] == "write":
+                written[row[2]] += 1
                 continue
             if row[1] == "compile" and hit:  # the hit is logged inside the compile step it ends
                 row[1] = "load"
@@ -129,7 +148,9 @@ def main():
              f"({phase_count['trace']} top-level traces), lowering {phase_seconds['lower']:.0f} s "
              f"({phase_count['lower']}), XLA compilation {total:.0f} s ({phase_count['compile']}), loading from "
              f"the persistent cache {phase_seconds['load']:.0f} s ({phase_count['load']}); {big:.0f} s in "
-             f"{sum(float(r[0]) >= 1.0 for r in compiles)} compilations of 1 s or more. "
+             f"{sum(float(r[0]) >= 1.0 for r in compiles)} compilations of 1 s or more; "
+             f"{sum(written.values())} cache writes of {len(written)} distinct programs "
+             f"({sum(n > 1 for n in written.values())} written more than once). "
              f"Compilations by program (top {a.top}), by program and call site, then by test.")
     table = [(name, len(s), round(sum(s), 1), round(sum(s) / len(s), 2)) for name, s in top]
     for title, group in (("**by call site**", sites), ("**by test**", tests)):
