@@ -11,7 +11,6 @@ compile events into tracing, lowering to MLIR and XLA compilation (or loading fr
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -66,7 +65,6 @@ def main():
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("PYTHONHASHSEED", "0")
     t = time.perf_counter()
     main()
     print(f"({time.perf_counter() - t:.0f} s in all)")
