@@ -3,8 +3,8 @@
 Data flows one way:
 measurements -> nominal removed -> targets and library -> sampler -> posterior -> updated twin.
 
-The public names below are imported on first use (PEP 562), so ``import dtwin_jax`` and
-``dtwin-jax --help`` cost little more than importing jax.
+The public names below are imported on first use (PEP 562), so `import dtwin_jax` and
+`dtwin-jax --help` cost little more than importing jax.
 """
 
 import importlib

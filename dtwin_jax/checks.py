@@ -1,15 +1,15 @@
 """Posterior-predictive residual checks of one regressed equation.
 
-A discovered model that misses a term leaves structure in its residual ``e = y - L theta``:
+A discovered model that misses a term leaves structure in its residual `e = y - L theta`:
 memory (not white), dependence on a state (a missing function of that state) or on the
-direction of a velocity (a missing ``sign(v)`` friction term). :func:`residual_checks` tests
+direction of a velocity (a missing `sign(v)` friction term). `residual_checks` tests
 for each, with a Bonferroni threshold over all its tests and a minimum effect size (the
 fraction of residual variance the structure explains), so that very long records do not
 flag negligible structure.
 
 Samples of a time series are correlated, which makes the usual F and t tests far too
-confident; the dependence tests count ``n / tau`` effective samples, ``tau = 1 + 2 sum_k
-rho_k`` (lags 1..max_lag, at least 1) the variance inflation of a mean of the residual.
+confident; the dependence tests count `n / tau` effective samples, `tau = 1 + 2 sum_k
+rho_k` (lags `1..max_lag`, at least 1) the variance inflation of a mean of the residual.
 """
 
 from __future__ import annotations
@@ -33,16 +33,28 @@ def residual_checks(
 ) -> dict:
     """Whiteness, state dependence and velocity-sign dependence of a residual.
 
-    ``residual (N,)`` or ``(R, N)`` (R records), ``states (N, m)`` or ``(R, N, m)`` the states
-    at the same samples, ``velocity_index`` the indices of the velocities among the states,
-    ``state_names (m,)``. A check fails when its p-value is below ``alpha / n_tests``
-    (Bonferroni: ``alpha`` overall) and its effect, the fraction of residual variance it
-    explains beyond what noise alone gives, is at least ``min_effect``.
+    A check fails when its p-value is below `alpha / n_tests` (Bonferroni: `alpha` overall,
+    over one whiteness test, one test per state and one per velocity) and its effect, the
+    fraction of residual variance it explains beyond what noise alone gives, is at least
+    `min_effect`.
 
-    Returns a JSON-ready dict: ``ok``, ``warnings`` (one line per failed check, naming the
-    check and the state), ``threshold``, ``min_effect``, ``samples``, ``variance_inflation``
-    and the results ``whiteness``, ``state[name]`` and ``velocity_sign[name]``, each with
-    ``statistic``, ``dof``, ``p_value``, ``effect`` and ``flag``.
+    **Arguments:**
+
+    - `residual`: the equation's residual, shape `(N,)` or `(R, N)` (`R` records), in the
+      equation's units.
+    - `states`: the states at the same samples, shape `(N, m)` or `(R, N, m)`.
+    - `velocity_index`: the indices of the velocities among the `m` states; each gets a
+      velocity-sign test.
+    - `state_names`: the `m` state names, which key the results and name them in warnings.
+    - `max_lag`: the number of lags of the whiteness test and of the variance inflation `tau`.
+    - `alpha`: the overall significance level of all the tests together.
+    - `min_effect`: the smallest fraction of residual variance a failed check must explain.
+    - `bins`: the number of quantile bins of each state-dependence test.
+
+    **Returns:** a JSON-ready dict: `ok`, `warnings` (one line per failed check, naming the
+    check and the state), `threshold`, `min_effect`, `samples`, `variance_inflation`
+    and the results `whiteness`, `state[name]` and `velocity_sign[name]`, each with
+    `statistic`, `dof`, `p_value`, `effect` and `flag`.
     """
     e = np.atleast_2d(np.asarray(residual, dtype=float))
     x = np.asarray(states, dtype=float)
@@ -94,8 +106,15 @@ def residual_checks(
 
 
 def pooled_autocorrelation(e: np.ndarray, max_lag: int) -> np.ndarray:
-    """Autocorrelation at lags 1..max_lag of demeaned records ``e (R, N)``, pooled over
-    records, ``(max_lag,)``."""
+    """Autocorrelation at lags `1..max_lag` of demeaned records, pooled over records.
+
+    **Arguments:**
+
+    - `e`: demeaned residual records, shape `(R, N)`.
+    - `max_lag`: the number of lags.
+
+    **Returns:** the autocorrelations `rho`, shape `(max_lag,)`; zeros when `e` is all zero.
+    """
     denom = np.sum(e**2)
     if denom == 0:
         return np.zeros(max_lag)
@@ -103,10 +122,20 @@ def pooled_autocorrelation(e: np.ndarray, max_lag: int) -> np.ndarray:
 
 
 def ljung_box(e: np.ndarray, rho: np.ndarray, max_lag: int) -> dict:
-    """Ljung-Box statistic summed over records ``e (R, N)`` (chi-square, ``R * max_lag``
-    dof). Effect: the fraction of variance the best linear predictor from lags 1..max_lag
-    explains (from the pooled autocorrelation ``rho``), less its ``max_lag / n`` expected
-    under white noise."""
+    """Ljung-Box whiteness test summed over records (chi-square, `R * max_lag` dof).
+
+    Effect: the fraction of variance the best linear predictor from lags `1..max_lag`
+    explains (from the pooled autocorrelation `rho`), less its `max_lag / n` expected
+    under white noise (`n` the number of samples).
+
+    **Arguments:**
+
+    - `e`: demeaned residual records, shape `(R, N)`.
+    - `rho`: their pooled autocorrelation, shape `(max_lag,)` (`pooled_autocorrelation`).
+    - `max_lag`: the number of lags.
+
+    **Returns:** a dict with `statistic`, `dof`, `p_value` and `effect`.
+    """
     R, N = e.shape
     lags = np.arange(1, max_lag + 1)
     q = 0.0
@@ -129,10 +158,22 @@ def ljung_box(e: np.ndarray, rho: np.ndarray, max_lag: int) -> dict:
 
 
 def binned_means_test(z: np.ndarray, x: np.ndarray, bins: int, tau: float) -> dict:
-    """One-way ANOVA of the standardized residual ``z (n,)`` over quantile bins of one state
-    ``x (n,)``: any function of ``x`` missing from the model shifts the bin means. The F
-    statistic and its second dof count ``n / tau`` effective samples. Effect: eta^2 (between-bin
-    share of the variance) less its ``(bins - 1) / n`` expected under no dependence."""
+    """One-way ANOVA of the standardized residual over quantile bins of one state.
+
+    Any function of `x` missing from the model shifts the bin means. The F statistic and its
+    second dof count `n / tau` effective samples. Effect: `eta^2` (between-bin share of the
+    variance) less its `(bins - 1) / n` expected under no dependence.
+
+    **Arguments:**
+
+    - `z`: the standardized residual, shape `(n,)`, all records flattened.
+    - `x`: one state at the same samples, shape `(n,)`.
+    - `bins`: the number of quantile bins (fewer when quantiles coincide).
+    - `tau`: the variance inflation, at least 1: `n / tau` effective samples.
+
+    **Returns:** a dict with `statistic` (F), `dof` (`[d1, d2]`), `p_value` and `effect`;
+    p-value 1 and effect 0 when there is one bin only or `z` is constant.
+    """
     edges = np.unique(np.quantile(x, np.linspace(0, 1, bins + 1)[1:-1]))
     group = np.searchsorted(edges, x, side="right")
     k = edges.size + 1
@@ -156,9 +197,22 @@ def binned_means_test(z: np.ndarray, x: np.ndarray, bins: int, tau: float) -> di
 
 
 def sign_test(z: np.ndarray, v: np.ndarray, tau: float) -> dict:
-    """Welch t test of the standardized residual ``z (n,)`` for ``v > 0`` against ``v < 0``
-    (a missing ``sign(v)`` term, e.g. Coulomb friction, shifts them apart), with ``n / tau``
-    effective samples. Effect: the share of variance the two group means explain."""
+    """Welch t test of the standardized residual for `v > 0` against `v < 0`.
+
+    A missing `sign(v)` term (e.g. Coulomb friction) shifts the two groups apart. The test
+    counts `n / tau` effective samples. Effect: the share of variance the two group means
+    explain, less its `1 / n` expected under no dependence.
+
+    **Arguments:**
+
+    - `z`: the standardized residual, shape `(n,)`, all records flattened.
+    - `v`: one velocity at the same samples, shape `(n,)`.
+    - `tau`: the variance inflation, at least 1.
+
+    **Returns:** a dict with `statistic` (t), `dof`, `p_value`, `effect`, `mean_positive` and
+    `mean_negative` (the mean of `z` where `v > 0` and where `v < 0`); p-value 1 and effect
+    0 when either group has fewer than 2 samples.
+    """
     pos, neg = z[v > 0], z[v < 0]
     if pos.size < 2 or neg.size < 2:
         return {"statistic": 0.0, "dof": 0.0, "p_value": 1.0, "effect": 0.0,

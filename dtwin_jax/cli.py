@@ -1,5 +1,5 @@
-"""Command line (formats.md): ``dtwin-jax discover``, ``predict``, ``update`` and ``monitor`` (a
-saved twin), ``demo`` and ``sweep``."""
+"""Command line (formats.md): `dtwin-jax discover`, `predict`, `update` and `monitor` (a
+saved twin), `demo` and `sweep`."""
 
 from __future__ import annotations
 
@@ -241,8 +241,8 @@ def _uninterrupted():
 
 
 def _nominal_sizes(path) -> tuple[int, int, int] | None:
-    """``(d, E, n)`` read off a nominal file's matrices (no validation: None when they are not
-    plain lists; :func:`~dtwin_jax.io.load_nominal` later says what is wrong)."""
+    """`(d, E, n)` read off a nominal file's matrices (no validation: None when they are not
+    plain lists; `io.load_nominal` later says what is wrong)."""
     import tomllib
 
     try:
@@ -256,10 +256,10 @@ def _nominal_sizes(path) -> tuple[int, int, int] | None:
 
 
 def _check_early(args, sizes, library) -> None:
-    """The update's memory (:mod:`dtwin_jax.resources`) from the options and the nominal
+    """The update's memory (`dtwin_jax.resources`) from the options and the nominal
     file's sizes, before the modules that load and fit the data are imported (they take
     seconds): an oversize request is refused in about a second. The update checks again,
-    from the data (:func:`dtwin_jax.update.update_input_output`)."""
+    from the data (`dtwin_jax.update.update_input_output`)."""
     from dtwin_jax import resources
 
     if sizes is None:
@@ -300,9 +300,9 @@ def _write_outputs(args, result) -> None:
 
 
 def _check_twin_early(twin) -> tuple[str | None, tuple | None]:
-    """A saved twin's sizes checked before its modules are imported: its ``num_inputs``
-    (:func:`~dtwin_jax.resources.check_num_inputs`). Returns its library spec and its nominal
-    ``(d, E, n)``, each None when unreadable (:func:`~dtwin_jax.io.store.load_twin` says why)."""
+    """A saved twin's sizes checked before its modules are imported: its `num_inputs`
+    (`resources.check_num_inputs`). Returns its library spec and its nominal
+    `(d, E, n)`, each None when unreadable (`store.load_twin` says why)."""
     import json
     import re
 
@@ -364,7 +364,7 @@ def _update_saved(args) -> int:
 
 
 def _monitor_windows(args):
-    """``(source, data, t_start)`` of each window, read when its turn comes."""
+    """`(source, data, t_start)` of each window, read when its turn comes."""
     from dtwin_jax.io import load_measurements
 
     if args.record is None:
@@ -598,7 +598,7 @@ def _print_diagnostics(result) -> None:
 def _finish_demo(ex, result, out: Path, say, arrays: dict, header: list[str],
                  diffusion: dict | None = None) -> None:
     """Print the header, the discovered equations, the truth and diagnostics; write
-    result.json, pip.png, measurements.npz and nominal.toml to ``out``."""
+    result.json, pip.png, measurements.npz and nominal.toml to `out`."""
     import numpy as np
 
     from dtwin_jax.io import atomic_path, write_json, write_nominal
@@ -673,10 +673,20 @@ def _sweep(args) -> int:
 
 
 def console_main(argv=None) -> int:
-    """The ``dtwin-jax`` command: :func:`configure_runtime` for this process, then :func:`main`.
-    (:func:`main` called from Python leaves the caller's process as it is.) Single updates
-    run on the CPU and ``sweep`` on an accelerator where there is one, unless
-    ``$DTWIN_JAX_PLATFORM`` says otherwise (see :func:`configure_runtime`)."""
+    """The `dtwin-jax` command: `configure_runtime` for this process, then `main`.
+
+    (`main` called from Python leaves the caller's process as it is.) Single updates run on
+    the CPU and `sweep` on an accelerator where there is one, unless `$DTWIN_JAX_PLATFORM`
+    says otherwise (see `configure_runtime`). `--help` and usage errors exit before JAX starts.
+
+    **Arguments:**
+
+    - `argv`: the command line's arguments after the program name, or None (default) for
+      `sys.argv[1:]`.
+
+    **Returns:** the exit status, as `main` gives it (2 also for a bad `$DTWIN_JAX_PLATFORM`,
+    130 when interrupted while the runtime is set up).
+    """
     argv = sys.argv[1:] if argv is None else argv
     args = _parser().parse_args(argv)  # --help and usage errors exit here, before JAX starts
     sys.unraisablehook = _keep_interrupts(sys.unraisablehook)
@@ -691,7 +701,7 @@ def console_main(argv=None) -> int:
 
 
 def _keep_interrupts(hook):
-    """``sys.unraisablehook`` that raises a Ctrl-C again in the main thread: one that lands in a
+    """`sys.unraisablehook` that raises a Ctrl-C again in the main thread: one that lands in a
     callback Python cannot raise from (jaxlib's garbage-collector callback) is otherwise
     printed and lost, and the run goes on. The new interrupt comes from another thread a
     moment later, once the main thread has left the callback (raised from this hook itself,
@@ -707,9 +717,20 @@ def _keep_interrupts(hook):
 
 
 def main(argv=None) -> int:
-    """Run one command; returns the exit status: 0, 2 for bad input or out of memory (one
-    line on standard error), 130 when interrupted, 1 for an internal error (one line;
-    ``DTWIN_JAX_DEBUG=1`` re-raises it with its traceback)."""
+    """Run one command and turn its errors into an exit status.
+
+    Bad input and out of memory print one line on standard error; an internal error prints one
+    line too, and `DTWIN_JAX_DEBUG=1` re-raises it with its traceback instead. The process
+    itself is left as it is (`console_main` sets it up first).
+
+    **Arguments:**
+
+    - `argv`: the command line's arguments after the program name (e.g.
+      `["discover", ...]`), or None (default) for `sys.argv[1:]`.
+
+    **Returns:** the exit status: 0 on success, 2 for bad input or out of memory, 130 when
+    interrupted, 1 for an internal error.
+    """
     args = _parser().parse_args(argv)
     try:
         if getattr(args, "out_dir", None):
@@ -732,10 +753,10 @@ def main(argv=None) -> int:
 
 
 def _interrupted() -> int:
-    """Print :data:`INTERRUPTED`; returns 130. A Ctrl-C that ended inside a string ``exec`` or
-    ``eval`` (namedtuple, dataclass and sympy code run some) sets a CPython 3.12 flag that, under
-    ``python -m``, turns the exit status into a death by SIGINT (-2) after the handler has run.
-    The flag is cleared at the start of every string ``exec``, so one empty one clears it."""
+    """Print `INTERRUPTED`; returns 130. A Ctrl-C that ended inside a string `exec` or
+    `eval` (namedtuple, dataclass and sympy code run some) sets a CPython 3.12 flag that, under
+    `python -m`, turns the exit status into a death by SIGINT (-2) after the handler has run.
+    The flag is cleared at the start of every string `exec`, so one empty one clears it."""
     print(INTERRUPTED, file=sys.stderr)
     exec("None")  # not outside input: a constant, run only to clear the flag
     return 130
@@ -747,14 +768,14 @@ def _first_line(e: BaseException) -> str:
 
 
 def _error(message: str) -> int:
-    """Print ``dtwin-jax: error: <first line of message>``; returns 2."""
+    """Print `dtwin-jax: error: <first line of message>`; returns 2."""
     lines = message.strip().splitlines()
     print(f"dtwin-jax: error: {lines[0].strip() if lines else message}", file=sys.stderr)
     return 2
 
 
 def _out_of_memory(e: BaseException) -> bool:
-    """numpy's ``MemoryError``, or XLA's ``RESOURCE_EXHAUSTED`` (checked by name: no jax import)."""
+    """numpy's `MemoryError`, or XLA's `RESOURCE_EXHAUSTED` (checked by name: no jax import)."""
     names = {c.__name__ for c in type(e).__mro__}
     return isinstance(e, MemoryError) or (
         bool(names & {"JaxRuntimeError", "XlaRuntimeError"}) and "RESOURCE_EXHAUSTED" in str(e))

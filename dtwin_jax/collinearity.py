@@ -1,8 +1,8 @@
 """Library terms the measured data cannot tell apart: groups of nearly collinear columns,
-found from the Gram ``L^T L`` the sampler saw, reported as a check of the result, and the
+found from the Gram `L^T L` the sampler saw, reported as a check of the result, and the
 group's joint coefficient that the posterior-mean twin uses in place of each term's own.
 
-A positioning stage whose position never changes sign has ``x1*x2`` and ``x2*Abs(x1)`` as
+A positioning stage whose position never changes sign has `x1*x2` and `x2*Abs(x1)` as
 one column: the sampler selects both, each with the whole effect given its inclusion, and
 a twin at the conditional means counts the term twice."""
 
@@ -24,18 +24,16 @@ PIP_MIN = 0.1
 
 
 def collinear_groups(gram, *, cosine_min: float = COSINE_MIN) -> list[tuple[list[int], float]]:
-    """Connected components of the graph ``|cos(L_i, L_j)| > cosine_min`` of a Gram.
+    """Connected components of the graph `|cos(L_i, L_j)| > cosine_min` of a Gram.
 
     **Arguments:**
 
-    - ``gram``: ``L^T L`` of one equation, shape ``(K, K)``, any units.
-    - ``cosine_min``: the uncentred cosine above which two columns are joined.
+    - `gram`: `L^T L` of one equation, shape `(K, K)`, any units.
+    - `cosine_min`: the uncentred cosine above which two columns are joined.
 
-    **Returns:**
-
-    ``[(indices, cosine), ...]``, every component of two or more columns, each with its
-    sorted column indices and the smallest ``|cos|`` of the edges joining it (the weakest
-    link), in order of their first column. Columns with a non-positive diagonal (a
+    **Returns:** `[(indices, cosine), ...]`, every component of two or more columns, each
+    with its sorted column indices and the smallest `|cos|` of the edges joining it (the
+    weakest link), in order of their first column. Columns with a non-positive diagonal (a
     noise-corrected Gram can have one) join nothing.
     """
     g = np.asarray(gram, dtype=np.float64)
@@ -69,19 +67,17 @@ def _root(label, k):
 
 
 def collinearity_checks(statistics, equations) -> dict:
-    """The result's checks ``"<state> collinearity"``, one per drift equation with a group
-    of nearly collinear columns in which some term has PIP above :data:`PIP_MIN`.
+    """The result's checks `"<state> collinearity"`, one per drift equation with a group
+    of nearly collinear columns in which some term has PIP above `PIP_MIN`.
 
     **Arguments:**
 
-    - ``statistics``: the drift :class:`~dtwin_jax.sampler.SuffStats` batched over the
-      ``q`` regressed equations (``gram (q, K, K)``), as the sampler saw them.
-    - ``equations``: the ``q`` drift :class:`~dtwin_jax.posterior.EquationPosterior`, same order.
+    - `statistics`: the drift `sampler.SuffStats` batched over the
+      `q` regressed equations (`gram (q, K, K)`), as the sampler saw them.
+    - `equations`: the `q` drift `posterior.EquationPosterior`, same order.
 
-    **Returns:**
-
-    ``{label: {"ok": False, "groups": [[name, ...], ...], "cosines": [float, ...],
-    "warnings": [str, ...]}}``; empty when no equation has such a group.
+    **Returns:** `{label: {"ok": False, "groups": [[name, ...], ...], "cosines": [float, ...],
+    "warnings": [str, ...]}}`; empty when no equation has such a group.
     """
     gram = np.asarray(statistics.gram)
     out = {}
@@ -115,13 +111,11 @@ def group_coefficients(equation, groups, coefficients) -> np.ndarray:
 
     **Arguments:**
 
-    - ``equation``: the :class:`~dtwin_jax.posterior.EquationPosterior`.
-    - ``groups``: lists of term names (a collinearity check's ``"groups"``).
-    - ``coefficients``: the equation's twin coefficients, shape ``(K,)``.
+    - `equation`: the `posterior.EquationPosterior`.
+    - `groups`: lists of term names (a collinearity check's `"groups"`).
+    - `coefficients`: the equation's twin coefficients, shape `(K,)`.
 
-    **Returns:**
-
-    The coefficients with the groups' entries replaced, shape ``(K,)``.
+    **Returns:** the coefficients with the groups' entries replaced, shape `(K,)`, float64.
     """
     coef = np.array(coefficients, dtype=np.float64)
     index = {n: k for k, n in enumerate(equation.names)}
@@ -137,9 +131,19 @@ def group_coefficients(equation, groups, coefficients) -> np.ndarray:
 
 
 def twin_coefficients(equations, checks) -> np.ndarray:
-    """The twin's coefficients ``(q, K)`` of drift ``equations``: each one's posterior means
-    of its selected terms, a collinearity group in ``checks`` entering once
-    (:func:`group_coefficients`)."""
+    """The twin's coefficients of drift `equations`, each collinearity group entering once.
+
+    Each equation's coefficients are the posterior means of its selected terms; an equation
+    with a collinearity group in `checks` has the group as one term (`group_coefficients`).
+
+    **Arguments:**
+
+    - `equations`: the `q` drift `posterior.EquationPosterior`, each over the same `K` terms.
+    - `checks`: the result's checks, keyed by label; only the `"<state> collinearity"`
+      entries (`collinearity_checks`) are used.
+
+    **Returns:** the coefficients, shape `(q, K)`, one row per equation.
+    """
     def one(e):
         check = checks.get(f"{e.state} collinearity")
         return e.coefficients if check is None else group_coefficients(e, check["groups"], e.coefficients)

@@ -1,4 +1,4 @@
-"""Validation of measured signals: every check raises a one-line :class:`DataError`."""
+"""Validation of measured signals: every check raises a one-line `DataError`."""
 
 from __future__ import annotations
 
@@ -17,7 +17,8 @@ _MIN_SAMPLES = 16
 class Records(NamedTuple):
     """Validated measurements with an explicit record axis.
 
-    ``t (N,)`` seconds from 0 on an exact uniform grid; ``x (R, N, m)``; ``u (R, N, n)`` or None; ``xdot (R, N, m)`` or None.
+    `t (N,)` seconds from 0 on an exact uniform grid; `x (R, N, m)`; `u (R, N, n)` or None;
+    `xdot (R, N, m)` or None.
     """
 
     t: np.ndarray
@@ -46,9 +47,20 @@ def _as_records(name: str, a, N: int, width: int | None, what: str) -> np.ndarra
 
 
 def check_signal(name: str, a, num_samples: int, num_records: int) -> np.ndarray:
-    """An extra measured signal (a closed loop's ``reference``) as ``(R, N, c)``: real, finite,
-    ``(N,)`` (one channel), ``(N, c)`` or ``(R, N, c)`` with the records and samples of ``x``;
-    one-line errors naming it."""
+    """Check an extra measured signal (a closed loop's `reference`) and give it a record axis.
+
+    The signal must be real and finite, `(N,)` (one channel), `(N, c)` or `(R, N, c)`, with
+    the records and samples of `x`; every refusal is a one-line `DataError` naming it.
+
+    **Arguments:**
+
+    - `name`: the signal's name in error messages, e.g. `"reference"`.
+    - `a`: the signal, shape `(N,)`, `(N, c)` or `(R, N, c)`, in its own units.
+    - `num_samples`: the number of samples `N` of `t` (and `x`).
+    - `num_records`: the number of records `R` of `x`.
+
+    **Returns:** the signal as float64 `(R, N, c)`.
+    """
     a = real_array(f"'{name}'", a)
     a = _as_records(name, a[:, None] if a.ndim == 1 else a, num_samples, None, "c")
     if a.shape[0] != num_records:
@@ -64,19 +76,20 @@ STEP_RTOL = 1e-2
 
 
 def uniform_times(t) -> np.ndarray:
-    """Check that ``t`` is uniformly sampled and rebase it to ``arange(N) * dt``.
+    """Check that `t` is uniformly sampled and rebase it to `arange(N) * dt`.
+
+    The step is `dt = (t[-1] - t[0]) / (N - 1)`. Every step must be within `STEP_RTOL` of
+    `dt`, plus 4 float64 spacings of `max|t|`: epoch timestamps (`t ~ 1.7e9` s) are stored to
+    about 2.4e-7 s, which at 10 kHz is 0.24% of a step. Later code sees times from 0, so the
+    size of `t[0]` costs no precision there. A refusal is a one-line `DataError`.
 
     **Arguments:**
 
-    - ``t``: ``(N,)`` real sample times, ``N >= 16``.
+    - `t`: `(N,)` real sample times in seconds, `N >= 16`.
 
-    **Returns:**
-
-    ``(N,)`` float64 times from 0 with ``dt = (t[-1] - t[0]) / (N - 1)``, rounded to the
-    shortest decimal within that estimate's rounding error (:func:`_shortest_step`). Every
-    step must be within ``STEP_RTOL`` of ``dt``, plus 4 float64 spacings of ``max|t|``: epoch
-    timestamps (``t ~ 1.7e9`` s) are stored to about 2.4e-7 s, which at 10 kHz is 0.24% of a
-    step. Later code sees times from 0, so the size of ``t[0]`` costs no precision there."""
+    **Returns:** `(N,)` float64 times in seconds from 0, `arange(N) * dt` with `dt` rounded to
+    the shortest decimal within that estimate's rounding error (`_shortest_step`).
+    """
     t = real_array("'t'", t)
     if t.ndim != 1:
         raise DataError(f"'t' must be one-dimensional, got shape {t.shape}")
@@ -95,9 +108,9 @@ def uniform_times(t) -> np.ndarray:
 
 
 def _shortest_step(dt: float, error: float) -> float:
-    """The decimal with the fewest significant digits within ``error`` (s) of ``dt`` (and 4 of
+    """The decimal with the fewest significant digits within `error` (s) of `dt` (and 4 of
     its own float64 spacings). Windows cut from one record at other offsets, or stamped with
-    epoch times, then have the same ``dt`` bit for bit (1 ms, not 0.9999999999999953 ms for
+    epoch times, then have the same `dt` bit for bit (1 ms, not 0.9999999999999953 ms for
     one and 1.0000000000000005 ms for another), and the programs keyed on it are reused."""
     error = float(error) + 4 * float(np.spacing(dt))
     for digits in range(1, 18):
@@ -112,19 +125,27 @@ def check_records(
 ) -> Records:
     """Check types, shapes, finiteness and uniform sampling.
 
+    Complex, boolean and string arrays are refused; every refusal is a one-line `DataError`
+    naming the key at fault.
+
     **Arguments:**
 
-    - ``t``: ``(N,)`` sample times in seconds, uniformly spaced (see :func:`uniform_times`);
+    - `t`: `(N,)` sample times in seconds, uniformly spaced (see `uniform_times`);
       any origin, epoch timestamps included.
-    - ``x``, ``u``, ``xdot``: ``(N, w)`` or ``(R, N, w)`` real arrays (complex, boolean and
-      string arrays are refused); ``u`` and ``xdot`` optional.
-    - ``nominal``: gives the widths: ``x`` and ``xdot`` have ``nominal.m`` columns, or
-      ``x_columns`` / ``xdot_columns`` when only some states (or rates) are measured.
+    - `x`: measured states, `(N, w)` or `(R, N, w)` real, in the states' units.
+    - `u`: inputs, `(N, n)` or `(R, N, n)` real, or None (default) for none.
+    - `xdot`: measured state rates, `(N, w)` or `(R, N, w)` real (the states' units per
+      second), or None (default) for none.
+    - `nominal`: the nominal model, which gives the widths: `x` and `xdot` have `nominal.m`
+      columns and `u` has `nominal.n`; None (default) checks no widths.
+    - `x_columns`: the number of columns of `x` when only some states are measured; None
+      (default) for `nominal.m` (no check without `nominal`).
+    - `xdot_columns`: the number of columns of `xdot` when only some rates are measured; None
+      (default) for as many as `x` has.
 
-    **Returns:**
-
-    :class:`Records` with ``t`` rebased to the exact uniform grid ``arange(N) * dt`` from 0.
-    Raises a one-line :class:`DataError` naming the key at fault."""
+    **Returns:** `Records` with `t` rebased to the exact uniform grid `arange(N) * dt` from 0
+    and every array float64 with a record axis: `x (R, N, w)`, `u (R, N, n)`, `xdot (R, N, w)`.
+    """
     t = uniform_times(t)
     N = t.size
     m = nominal.m if nominal is not None else None
@@ -143,9 +164,19 @@ def check_records(
 
 
 def state_range(x, previous=None) -> list[list[float]]:
-    """`[[lo, hi], ...]`, one per state: the smallest and largest value of `x (..., m)`, and
-    of the `previous` update's range when given (a re-update's twin has seen both), saved
-    with the twin to bound its predictions (:func:`dtwin_jax.models.prediction.divergence_bounds`)."""
+    """The range of each state the twin has seen, saved with it to bound its predictions.
+
+    Used by `dtwin_jax.models.prediction.divergence_bounds`. NaN entries of `x` are ignored.
+
+    **Arguments:**
+
+    - `x`: states, shape `(..., m)`, in the states' units.
+    - `previous`: the update this one continues (its `preprocessing["state_range"]` is
+      merged in: a re-update's twin has seen both), or None (default).
+
+    **Returns:** `[[lo, hi], ...]`, one pair per state: the smallest and largest value of `x`
+    (and of `previous`'s range when given), as a list of `m` lists of floats.
+    """
     x = np.asarray(x, dtype=float).reshape(-1, np.shape(x)[-1])
     lo, hi = np.nanmin(x, axis=0), np.nanmax(x, axis=0)
     old = None if previous is None else previous.preprocessing.get("state_range")

@@ -1,13 +1,13 @@
-"""Term expressions from outside (a ``--library`` option, a twin's ``twin.json``, an API
+"""Term expressions from outside (a `--library` option, a twin's `twin.json`, an API
 argument) parsed without running code.
 
-``sympy.sympify`` evaluates Python, so no outside string may reach it. :func:`parse_term`
-parses with Python's ``ast`` in ``eval`` mode and builds the SymPy expression node by node
-from an allow-list: integers; the names ``x1, x2, ...`` and ``u1, u2, ...``; ``+ - * / **``;
-unary ``-`` and ``+``; one-argument calls of ``sign``, ``Abs``, ``exp``, ``sin``, ``cos``.
+`sympy.sympify` evaluates Python, so no outside string may reach it. `parse_term`
+parses with Python's `ast` in `eval` mode and builds the SymPy expression node by node
+from an allow-list: integers; the names `x1, x2, ...` and `u1, u2, ...`; `+ - * / **`;
+unary `-` and `+`; one-argument calls of `sign`, `Abs`, `exp`, `sin`, `cos`.
 Anything else (attributes, subscripts, other names or calls, keywords, strings, lambdas,
 comprehensions) is refused before any of it is evaluated. SymPy then only combines
-already-built expressions, as ``sympify`` would: the results are equal.
+already-built expressions, as `sympify` would: the results are equal.
 """
 
 from __future__ import annotations
@@ -39,14 +39,14 @@ class _Refused(Exception):
 
 
 def parse_term(text: str) -> sympy.Expr:
-    """Parse one term expression, such as ``"x1**2*x2"`` or ``"exp(-x3)*x1"``, safely.
+    """Parse one term expression, such as `"x1**2*x2"` or `"exp(-x3)*x1"`, safely.
 
     **Arguments:**
 
     - `text`: the expression, at most 1000 characters.
 
-    **Returns:** the SymPy expression, equal to what ``sympy.sympify(text)`` gives for
-    every expression of the grammar (names are plain symbols ``x1..``, ``u1..``).
+    **Returns:** the SymPy expression, equal to what `sympy.sympify(text)` gives for
+    every expression of the grammar (names are plain symbols `x1..`, `u1..`).
 
     Raises `DataError` (one line) for anything outside the grammar, naming what was found.
     """
@@ -68,13 +68,13 @@ def parse_term(text: str) -> sympy.Expr:
 
 
 def _shown(text, limit: int = 80) -> str:
-    """``repr`` of an outside string, cut to ``limit`` characters for a one-line message."""
+    """`repr` of an outside string, cut to `limit` characters for a one-line message."""
     text = repr(text)
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _build(node) -> tuple[sympy.Expr, int]:
-    """``(expression, bound on its polynomial degree)`` of an allowed node."""
+    """`(expression, bound on its polynomial degree)` of an allowed node."""
     if isinstance(node, ast.Constant):
         value = node.value
         # Integers only (terms carry no coefficients), small, so arithmetic on them stays cheap.

@@ -17,7 +17,7 @@ States are `x1..xm`, inputs `u1..un`. A library spec is a comma-separated list o
 | `terms:E1;E2;...` | exactly the listed expressions, each one of the terms above |
 
 Every term name is the canonical SymPy string of the term: `str(sympy.sympify(name)) == name`.
-Names from outside are parsed by :func:`dtwin_jax.expressions.parse_term`, which runs no
+Names from outside are parsed by `dtwin_jax.expressions.parse_term`, which runs no
 code; nothing here calls `sympify`.
 """
 
@@ -42,15 +42,31 @@ FAMILIES = ("poly", "sign", "abs", "xabs", "exp", "expx", "expxx", "sin", "cos",
 _KNOWN = "poly:P, " + ", ".join(FAMILIES[1:])
 
 def symbols(num_states: int, num_inputs: int) -> tuple[tuple[sympy.Symbol, ...], tuple[sympy.Symbol, ...]]:
-    """`(x1..xm), (u1..un)` as plain SymPy symbols (no assumptions, so they equal `sympify`'s)."""
+    """The state and input symbols as plain SymPy symbols (no assumptions, so they equal `sympify`'s).
+
+    **Arguments:**
+
+    - `num_states`: the number of states `m`.
+    - `num_inputs`: the number of inputs `n`.
+
+    **Returns:** `(xs, us)`: the symbols `(x1..xm)` and `(u1..un)`.
+    """
     xs = tuple(sympy.Symbol(f"x{i + 1}") for i in range(num_states))
     us = tuple(sympy.Symbol(f"u{i + 1}") for i in range(num_inputs))
     return xs, us
 
 
 def to_sympy(name: str) -> sympy.Expr:
-    """Parse a term name into a SymPy expression in `x1..xm`, `u1..un`, without running
-    code (:func:`dtwin_jax.expressions.parse_term`)."""
+    """Parse a term name into a SymPy expression in `x1..xm`, `u1..un`, without running code.
+
+    Uses `dtwin_jax.expressions.parse_term`.
+
+    **Arguments:**
+
+    - `name`: a term name, e.g. `"x1*Abs(x2)"`.
+
+    **Returns:** the SymPy expression.
+    """
     return parse_term(name)
 
 
@@ -112,13 +128,30 @@ class Library(eqx.Module):
         return _design(self, x, u, smoothing)
 
     def eval_single(self, x, u=None, smoothing=None):
-        """One sample: `x` shape `(m,)`, `u` shape `(n,)` -> shape `(K,)`."""
+        """The design matrix's row at one sample (the same as calling the library).
+
+        **Arguments:**
+
+        - `x`: states, shape `(m,)`.
+        - `u`: inputs, shape `(n,)`, or None; needed only if the library has the `input` family.
+        - `smoothing`: variances `(m,)` of Gaussian-smoothed non-smooth terms, or None (default)
+          for exact terms (see `Library.__call__`).
+
+        **Returns:** the terms' values, shape `(K,)`, float64.
+        """
         return self(x, u, smoothing)
 
     def subset(self, keep) -> "Library":
-        """The library of the columns `keep` (indices or a `(K,)` mask), in library order.
+        """The library of the columns `keep`, in library order.
 
         Evaluating only the selected terms keeps an updated model cheap inside a solver.
+
+        **Arguments:**
+
+        - `keep`: the columns to keep, integer indices or a boolean mask `(K,)`.
+
+        **Returns:** a `Library` of those terms, with the same `spec`, `num_states` and
+        `num_inputs`.
         """
         keep = np.asarray(keep)
         index = np.flatnonzero(keep) if keep.dtype == bool else keep.astype(int)
@@ -135,11 +168,11 @@ class Library(eqx.Module):
 
 class TermTable(NamedTuple):
     """A library's terms as arrays (data, not program structure): one compiled program
-    evaluates any set of terms of the same size (:func:`term_table`, :func:`eval_terms`).
+    evaluates any set of terms of the same size (`term_table`, `eval_terms`).
 
     **Fields:**
 
-    - `family`: `(k,)` int, each term's family, an index into :data:`FAMILIES`.
+    - `family`: `(k,)` int, each term's family, an index into `FAMILIES`.
     - `exponents`: `(k, m)` int, a `poly` term's monomial exponents (zeros otherwise).
     - `index`: `(k, 2)` int, the state (or, for `input`, input) indices `i, j` of the others.
     - `powers`: `(P + 1,)` the powers `0..P` evaluated for the monomials: its length is
@@ -160,9 +193,17 @@ _POWER_SIZES = (3, 6)
 
 
 def term_table(lib: Library) -> TermTable:
-    """``lib``'s terms as a :class:`TermTable`, padded to its size class
-    (:data:`~dtwin_jax._compile.buckets.TABLE_BUCKETS`: 4, 8, 16, ... 256 rows, the library's
-    own size above them), the powers to 3, 6 or the largest exponent."""
+    """A library's terms as a `TermTable`, padded to its size class.
+
+    The rows are padded to `buckets.TABLE_BUCKETS` (4, 8, 16, ... 256 rows, the library's own
+    size above them), the powers to 3, 6 or the largest exponent.
+
+    **Arguments:**
+
+    - `lib`: the library.
+
+    **Returns:** the `TermTable`, with as many rows as the size class.
+    """
     size = bucket(lib.K, TABLE_BUCKETS)
     family = np.zeros(size, dtype=np.int32)
     exponents = np.zeros((size, lib.num_states), dtype=np.int32)
@@ -182,11 +223,21 @@ def term_table(lib: Library) -> TermTable:
 
 
 def eval_terms(table: TermTable, x, u=None):
-    """The table's terms at `x (..., m)` and `u (..., n)`, `(..., k)`: the library's design
-    matrix (unsmoothed) to rounding. `u` None (no inputs) leaves `input` rows at 1: pass `u`
-    whenever the table has them. Every family is evaluated at every row and the row's own
-    selected (the others' arguments are replaced by zero first, so an exponential that no
-    row uses cannot overflow into a gradient)."""
+    """The table's terms at states and inputs: the library's design matrix (unsmoothed) to rounding.
+
+    Every family is evaluated at every row and the row's own selected (the others' arguments
+    are replaced by zero first, so an exponential that no row uses cannot overflow into a
+    gradient).
+
+    **Arguments:**
+
+    - `table`: the terms, from `term_table`.
+    - `x`: states, shape `(..., m)`.
+    - `u`: inputs, shape `(..., n)`, or None (no inputs), which leaves `input` rows at 1: pass
+      `u` whenever the table has them.
+
+    **Returns:** the terms' values, shape `(..., k)` (`k` the table's rows, padding included).
+    """
     code = {name: FAMILIES.index(name) for name in FAMILIES}
     f, i, j = table.family, table.index[:, 0], table.index[:, 1]
     P = table.powers.shape[0] - 1
@@ -239,8 +290,17 @@ def _smoothed_xabs(x, c):
 
 
 def monomials(x, exponents):
-    """`prod_j x_j**e_j`, `(..., k)`, of the exponents `(k, m)` (non-negative ints) at
-    `x (..., m)`: powers by repeated products (exact `x**0 == 1`, no pow() calls), gathered."""
+    """Monomials `prod_j x_j**e_j` of the states, by repeated products.
+
+    Powers are formed by repeated products (exact `x**0 == 1`, no `pow()` calls), then gathered.
+
+    **Arguments:**
+
+    - `x`: states, shape `(..., m)`.
+    - `exponents`: the monomials' exponents, shape `(k, m)`, non-negative integers.
+
+    **Returns:** the monomials, shape `(..., k)`.
+    """
     exponents = np.asarray(exponents, dtype=int)
     powers = [jnp.ones_like(x), x]
     for _ in range(int(exponents.max(initial=1)) - 1):
@@ -385,7 +445,19 @@ def _listed_terms(token, xs, us):
 
 
 def parse_library(spec: str, num_states: int, num_inputs: int) -> Library:
-    """Build the library of a spec such as `"poly:3,sign,abs"` for `m` states, `n` inputs."""
+    """Build the library of a spec such as `"poly:3,sign,abs"`.
+
+    A malformed spec, an unknown family, a term listed twice or too many terms raise a
+    one-line `DataError`.
+
+    **Arguments:**
+
+    - `spec`: the library spec, a comma-separated list of families (module docstring).
+    - `num_states`: the number of states `m`, at least 1.
+    - `num_inputs`: the number of inputs `n`, at least 0; the `input` family needs one.
+
+    **Returns:** the `Library`.
+    """
     if not isinstance(num_states, (int, np.integer)) or num_states < 1:
         raise DataError(f"library needs num_states >= 1, got {num_states!r}")
     if not isinstance(num_inputs, (int, np.integer)) or num_inputs < 0:
@@ -429,7 +501,15 @@ def parse_library(spec: str, num_states: int, num_inputs: int) -> Library:
 
 
 def default_library(num_states: int, num_inputs: int) -> Library:
-    """The paper's library `DEFAULT_LIBRARY`, without `input` when there are no inputs."""
+    """The paper's library `DEFAULT_LIBRARY`, without `input` when there are no inputs.
+
+    **Arguments:**
+
+    - `num_states`: the number of states `m`.
+    - `num_inputs`: the number of inputs `n`; 0 drops the `input` family.
+
+    **Returns:** the `Library`.
+    """
     spec = DEFAULT_LIBRARY
     if num_inputs == 0:
         spec = ",".join(t for t in spec.split(",") if t != "input")
@@ -439,16 +519,16 @@ def default_library(num_states: int, num_inputs: int) -> Library:
 def column_scales(gram_diag, n):
     """RMS of each library column, `sqrt(diag(L^T L) / N)`, from sufficient statistics.
 
+    The sampler standardises columns by these scales internally (`L / scale`), so every
+    reported coefficient is divided back into physical units:
+    `theta_physical = beta_scaled / scale`.
+
     **Arguments:**
 
     - `gram_diag`: `diag(L^T L)`, shape `(K,)`.
     - `n`: number of rows `N` summed into it.
 
     **Returns:** scales, shape `(K,)`, in the physical units of each column.
-
-    The sampler standardises columns by these scales internally (`L / scale`), so every
-    reported coefficient is divided back into physical units:
-    `theta_physical = beta_scaled / scale`.
     """
     return jnp.sqrt(jnp.asarray(gram_diag, dtype=jnp.float64) / n)
 
@@ -487,9 +567,17 @@ def check_columns(L, names, *, rtol: float = 1e-10) -> None:
 
 
 def degenerate_columns(L, names, *, rtol: float = 1e-10) -> tuple[list[int], list[tuple[int, int]]]:
-    """The columns of `L (N, K)` that cannot be identified on these data: all-zero columns,
-    and pairs `(i, j)`, `i < j`, equal up to a nonzero factor (as :func:`check_columns`
-    defines it). Raises `DataError` for a shape mismatch, no rows or non-finite entries.
+    """The columns of a design matrix that cannot be identified on these data.
+
+    These are all-zero columns, and pairs `(i, j)`, `i < j`, equal up to a nonzero factor (as
+    `check_columns` defines it). Raises `DataError` for a shape mismatch, no rows or
+    non-finite entries.
+
+    **Arguments:**
+
+    - `L`: design matrix, shape `(N, K)`.
+    - `names`: the `K` term names (for error messages).
+    - `rtol`: duplicate tolerance on unit-RMS columns.
 
     **Returns:** `(zero, pairs)`: indices of the all-zero columns, and the duplicate pairs
     ordered by `j`."""
@@ -531,16 +619,19 @@ def degenerate_columns(L, names, *, rtol: float = 1e-10) -> tuple[list[int], lis
 
 
 def without_degenerate_columns(lib: Library, L) -> tuple[Library, list[str]]:
-    """`lib` without the columns these data cannot identify (:func:`degenerate_columns`):
-    all-zero columns and, of each duplicate pair, the later term (the simpler term, listed
-    first by the families, stays: `1` over `sign(x1)` when `x1 > 0` throughout).
+    """A library without the columns these data cannot identify (`degenerate_columns`).
+
+    Dropped are all-zero columns and, of each duplicate pair, the later term (the simpler
+    term, listed first by the families, stays: `1` over `sign(x1)` when `x1 > 0` throughout).
 
     **Arguments:**
 
-    - `lib`: the library; `L`: its design matrix on the data, `(N, K)`.
+    - `lib`: the library.
+    - `L`: its design matrix on the data, shape `(N, K)`.
 
-    **Returns:** the reduced library (spec `terms:...` of the kept names, so that it saves
-    and reloads) and one text per dropped term, e.g. `"sign(x1) (= 1)"`.
+    **Returns:** `(library, dropped)`: the reduced library (spec `terms:...` of the kept
+    names, so that it saves and reloads; `lib` itself when nothing is dropped) and one text
+    per dropped term, e.g. `"sign(x1) (= 1)"`.
     """
     zero, pairs = degenerate_columns(L, lib.names)
     drop = {k: "all zero" for k in zero}

@@ -1,13 +1,13 @@
 """Small dense linear algebra that compiles quickly.
 
-:func:`mass_solve` is ``M^-1 rhs`` for a nominal mass matrix: a division for one degree of
+`mass_solve` is `M^-1 rhs` for a nominal mass matrix: a division for one degree of
 freedom (exact, and no LAPACK call in every stage of every simulation step, filter and drift;
-benchmarks/cold_update.py times both).
+`benchmarks/cold_update.py` times both).
 
-:func:`expm` replaces ``jax.scipy.linalg.expm`` in the package: that one evaluates the
-Padé approximants of degrees 3, 5, 7, 9 and 13 as branches of one ``lax.switch`` and undoes
-the scaling in a 16-step scan of conditionals, which costs ~0.6 s of XLA compilation per
-call site (this one ~0.3 s); the state-space and Kramers-Moyal programs hold several.
+`expm` replaces `jax.scipy.linalg.expm` in the package: that one evaluates the
+Padé approximants of degrees 3, 5, 7, 9 and 13 as branches of one `lax.switch` and undoes
+the scaling in a 16-step scan of conditionals, which takes much longer to compile per call
+site than this one; the state-space and Kramers-Moyal programs hold several.
 """
 
 from __future__ import annotations
@@ -25,9 +25,18 @@ _THETA13 = 5.371920351148152
 
 
 def expm(A: jax.Array) -> jax.Array:
-    """``exp(A)`` of a float64 matrix ``A (n, n)``: scaling by ``2**-s`` to 1-norm at most
-    5.37, the degree-13 Padé approximant, ``s`` squarings (a loop of dynamic length). Accurate
-    to a few units of roundoff times the condition of the problem; jittable and vmappable."""
+    """The matrix exponential `exp(A)` of a float64 matrix.
+
+    Scaling by `2**-s` to 1-norm at most 5.37, the degree-13 Padé approximant, then `s`
+    squarings (a loop of dynamic length). Accurate to a few units of roundoff times the
+    condition of the problem; jittable and vmappable.
+
+    **Arguments:**
+
+    - `A`: the matrix, shape `(n, n)`, float64.
+
+    **Returns:** `exp(A)`, shape `(n, n)`, the dtype of `A`.
+    """
     A = jnp.asarray(A)
     norm = jnp.max(jnp.sum(jnp.abs(A), axis=0))
     s = jnp.where(norm > _THETA13, jnp.ceil(jnp.log2(norm / _THETA13)), 0.0)
@@ -44,8 +53,18 @@ def expm(A: jax.Array) -> jax.Array:
 
 
 def mass_solve(M: jax.Array, rhs: jax.Array) -> jax.Array:
-    """``M^-1 rhs`` for ``M (d, d)`` and ``rhs (d, ...)``: ``rhs / M`` when ``d = 1`` (the
-    shape is static), ``jnp.linalg.solve`` otherwise."""
+    """`M^-1 rhs` for a nominal mass matrix.
+
+    `rhs / M` when `d = 1` (the shape is static, so this is decided at trace time),
+    `jnp.linalg.solve` otherwise.
+
+    **Arguments:**
+
+    - `M`: the mass matrix, shape `(d, d)`.
+    - `rhs`: the right-hand side, shape `(d, ...)`.
+
+    **Returns:** `M^-1 rhs`, the shape of `rhs`.
+    """
     M, rhs = jnp.asarray(M), jnp.asarray(rhs)
     if M.shape[-1] == 1:
         return rhs / M[0, 0]

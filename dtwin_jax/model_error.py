@@ -4,7 +4,7 @@ A posterior over the library's coefficients carries the parameter uncertainty on
 the library misses (and what the posterior mean gets wrong over a long free run) shows as a
 free-run error on the training records themselves. Its standard deviation per measured
 state is saved with the twin and added to every prediction's band
-(:func:`dtwin_jax.models.prediction.with_model_error`), unless ``predict(..., model_error=False)``.
+(`dtwin_jax.models.prediction.with_model_error`), unless `predict(..., model_error=False)`.
 """
 
 from __future__ import annotations
@@ -24,14 +24,25 @@ _TRANSIENT = 0.05
 
 
 def training_model_error(twin, t, x, u, x_index, x0) -> tuple[list[float] | None, str | None]:
-    """Free-run RMS error of ``twin`` (an :class:`~dtwin_jax.models.prediction.UpdatedTwin`,
-    unbatched) on its training records.
+    """Free-run RMS error of an unbatched updated twin on its training records.
 
-    **Arguments:** ``t (N,)`` s, ``x (R, N, p)`` the measured states ``x_index``, ``u (R, N,
-    n)`` inputs, ``x0 (R, m)`` the estimated initial states.
+    Simulates the first records (at most 4, and at most 200,000 samples in all) from their
+    estimated initial states under their measured inputs, with the twin's posterior mean and
+    no model error, and compares the measured states after the start transient (the first 5%
+    of each simulated record: the initial velocity is an estimate).
 
-    **Returns:** ``(sd (m,)`` in each state's units, 0 for a state not measured``, None)``,
-    or ``(None, why)`` when the free run diverges or fails.
+    **Arguments:**
+
+    - `twin`: the updated twin, a `dtwin_jax.models.prediction.UpdatedTwin`, unbatched.
+    - `t`: sample times `(N,)`, s.
+    - `x`: the measured states `(R, N, p)` of the `R` records, in the states' units.
+    - `u`: the inputs `(R, N, n)`.
+    - `x_index`: the indices `(p,)` of the measured states among the twin's `m` states.
+    - `x0`: the estimated initial states `(R, m)` of the records.
+
+    **Returns:** `(sd, None)`: `sd`, a list of `m` floats, the RMS error of each state in its
+    units (0 for a state not measured); or `(None, why)`, a one-line reason, when the free run
+    diverges or fails.
     """
     from dtwin_jax.models.prediction import PredictionWarning, predict
 

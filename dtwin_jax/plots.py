@@ -30,10 +30,17 @@ PIP_LABEL = 0.1
 
 
 def plot_pip(result, path=None):
-    """Stem plot of every equation's PIPs with the selection threshold; returns the figure.
+    """Stem plot of every equation's PIPs with the selection threshold.
 
-    ``result`` is an :class:`~dtwin_jax.update.UpdateResult`; every term with PIP of at least
-    :data:`PIP_LABEL` is named (the selected ones in bold). Written to ``path`` (PNG) when given.
+    One panel per equation; every term with PIP of at least `PIP_LABEL` is named (the
+    selected ones in bold).
+
+    **Arguments:**
+
+    - `result`: an `UpdateResult`.
+    - `path`: where to write the figure (PNG), or None (default) to write nothing.
+
+    **Returns:** the matplotlib `Figure`.
     """
     eqs = result.equations
     fig = _figure((10, 2.6 * len(eqs)))
@@ -56,11 +63,19 @@ def plot_pip(result, path=None):
 
 
 def plot_noise_sweep(sweep, path=None):
-    """The paper's Fig. 10 for a :class:`~dtwin_jax.studies.SweepResult`: against the noise
-    level (% of each signal's std), (a) the relative error (%) of every true term's posterior
-    mean, median over replicates with the min-max band, and (b) the support recovery rate
-    (% of replicates whose every equation has exactly the true support). Framework 2's
-    diffusion terms are drawn dashed. Written to ``path`` (PNG) when given; returns the figure.
+    """The paper's Fig. 10 for a `SweepResult`.
+
+    Against the noise level (% of each signal's std): (a) the relative error (%) of every true
+    term's posterior mean, median over replicates with the min-max band, and (b) the support
+    recovery rate (% of replicates whose every equation has exactly the true support).
+    Framework 2's diffusion terms are drawn dashed.
+
+    **Arguments:**
+
+    - `sweep`: the `SweepResult` of `noise_sweep`.
+    - `path`: where to write the figure (PNG), or None (default) to write nothing.
+
+    **Returns:** the matplotlib `Figure`.
     """
     level = 100 * np.asarray(sweep.levels)
     fig = _figure((11, 4))
@@ -88,11 +103,25 @@ def plot_noise_sweep(sweep, path=None):
 
 
 def plot_prediction(prediction, truth=None, *, states=None, names=None, units=None, path=None, label="truth"):
-    """Predicted mean and 95% band of each state against ``truth (N, m)`` (the paper's
-    Figs. 7-9). ``prediction`` is the dict of :func:`dtwin_jax.models.prediction.predict`; ``states``
-    the indices to show (default all); ``names`` and ``units`` one string per state of the
-    model (default ``x1, x2, ...`` in "state units"). The measurement is black, the twin red
-    with its band, and the legend sits above the plots."""
+    """Predicted mean and 95% band of each state against a measurement (the paper's Figs. 7-9).
+
+    The measurement is black, the twin red with its band, and the legend sits above the plots;
+    time is in s.
+
+    **Arguments:**
+
+    - `prediction`: the dict of `dtwin_jax.models.prediction.predict` (`t (N,)` s, and
+      `mean`, `lower`, `upper`, each `(N, m)`).
+    - `truth`: the measured or true states `(N, m)` at the same times, or None (default) to
+      draw the twin alone.
+    - `states`: the indices of the states to show, or None (default) for all.
+    - `names`: one name per state of the model, or None (default) for `x1, x2, ...`.
+    - `units`: one unit per state of the model, or None (default) for "state units".
+    - `path`: where to write the figure (PNG), or None (default) to write nothing.
+    - `label`: the legend's name for `truth` (default `"truth"`).
+
+    **Returns:** the matplotlib `Figure`.
+    """
     t = np.asarray(prediction["t"])
     mean, lower, upper = (np.asarray(prediction[k]) for k in ("mean", "lower", "upper"))
     states = range(mean.shape[1]) if states is None else states
@@ -113,8 +142,18 @@ def plot_prediction(prediction, truth=None, *, states=None, names=None, units=No
 
 
 def plot_degradation(forecast, truth=None, path=None):
-    """Damage forecast (mean, 95% band, truth) and the failure-probability curve with its
-    95% interval; ``forecast`` from :func:`dtwin_jax.models.prediction.degradation_forecast`."""
+    """Damage forecast (mean, 95% band, truth) and the failure-probability curve with its 95% interval.
+
+    **Arguments:**
+
+    - `forecast`: the dict of `dtwin_jax.models.prediction.degradation_forecast` (`t (N,)` s,
+      the damage's mean and band, `critical`, the failure probability and its interval).
+    - `truth`: the true damage `(N,)` in state units at the same times, or None (default); when
+      given, its first crossing of the critical level is marked.
+    - `path`: where to write the figure (PNG), or None (default) to write nothing.
+
+    **Returns:** the matplotlib `Figure`.
+    """
     t = np.asarray(forecast["t"])
     fig = _figure((11, 4))
     ax_d, ax_p = fig.subplots(1, 2)
@@ -148,12 +187,26 @@ MONITOR_PANELS = 6
 
 
 def plot_monitor(timeline, path=None, *, false_alarm=None, remaining=None):
-    """A monitor's timeline (:class:`~dtwin_jax.monitor.Monitor`): each window's p-value
-    against the false-alarm rate, the PIPs of every term ever selected, and the coefficients
-    of the terms selected longest, with their 95% interval, over service time; alarms are
-    red vertical lines. ``remaining``: ``(term, track, rul)`` of
-    :mod:`dtwin_jax.monitor.degradation` adds a last panel, the tracked coefficient's window
-    estimates, its trend and the failure time's interval. Written to ``path`` (PNG) when given."""
+    """A monitor's timeline (`Monitor`) over service time.
+
+    Panels: each window's p-value against the false-alarm rate, the PIPs of every term ever
+    selected, and the coefficients (acceleration units) of the terms selected longest (at most
+    `MONITOR_PANELS`), with their 95% interval; alarms are red vertical lines. The x-axis is
+    the windows' `t_start` in s, or the window index where those do not increase.
+
+    **Arguments:**
+
+    - `timeline`: the monitor's windows, one dict each (`Monitor.timeline`).
+    - `path`: where to write the figure (PNG), or None (default) to write nothing.
+    - `false_alarm`: the false-alarm rate, drawn as a line on the p-value panel, or None
+      (default) for no line.
+    - `remaining`: `(term, track, rul)`, the tracked term's name, its `coefficient_track` and
+      its `remaining_life` (`dtwin_jax.monitor.degradation`), which adds a last panel: the
+      coefficient's window estimates, its trend and the failure time's interval; None
+      (default) for no such panel.
+
+    **Returns:** the matplotlib `Figure`.
+    """
     from dtwin_jax.monitor.timeline import ever_selected
 
     ts = np.array([w["t_start"] for w in timeline], dtype=float)
@@ -217,7 +270,7 @@ def _term_label(term) -> str:
 
 
 def _monitor_rows(timeline, term):
-    """``(pip, mean, lower, upper)`` of ``term`` over the windows (NaN where not selected)."""
+    """`(pip, mean, lower, upper)` of `term` over the windows (NaN where not selected)."""
     state, kind, expr = term
     out = np.full((4, len(timeline)), np.nan)
     for i, w in enumerate(timeline):

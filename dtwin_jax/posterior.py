@@ -24,8 +24,8 @@ def _arviz_stats():
 class EquationPosterior:
     """Draws for one regressed equation, in physical units.
 
-    ``theta`` is ``(chains, draws, K)`` with zeros where a term is excluded, ``gamma`` the
-    matching inclusion indicators, ``sigma2`` ``(chains, draws)`` the residual variance.
+    `theta` is `(chains, draws, K)` with zeros where a term is excluded, `gamma` the
+    matching inclusion indicators, `sigma2` `(chains, draws)` the residual variance.
     Coefficient statistics of a term are conditional on its inclusion (the coefficient of the
     discovered term); for a term with PIP near 1 they equal the marginal ones.
     """
@@ -41,22 +41,22 @@ class EquationPosterior:
 
     @property
     def pip(self) -> np.ndarray:
-        """Posterior inclusion probability of every term, ``(K,)``."""
+        """Posterior inclusion probability of every term, `(K,)`."""
         return self.gamma.mean(axis=(0, 1))
 
     @property
     def selected(self) -> np.ndarray:
-        """Terms with PIP above the threshold, ``(K,)`` bool."""
+        """Terms with PIP above the threshold, `(K,)` bool."""
         return self.pip > self.pip_threshold
 
     @property
     def pip_per_chain(self) -> np.ndarray:
-        """Inclusion probability of every term within each chain, ``(chains, K)``."""
+        """Inclusion probability of every term within each chain, `(chains, K)`."""
         return self.gamma.mean(axis=1)
 
     @property
     def pip_chain_spread(self) -> np.ndarray:
-        """``max_c pip_ck - min_c pip_ck`` of every term, ``(K,)``: chains that start apart and
+        """`max_c pip_ck - min_c pip_ck` of every term, `(K,)`: chains that start apart and
         stay in different modes disagree here (0 with one chain)."""
         return np.ptp(self.pip_per_chain, axis=0)
 
@@ -67,9 +67,9 @@ class EquationPosterior:
 
     def rhat_gamma(self) -> np.ndarray:
         """Rank-normalised split R-hat of the indicators of every term some chain selects
-        (per-chain PIP above the threshold), ``(n,)``; NaN where the indicator never changes.
-        The order is that of :meth:`chain_selected`. Chains each constant at different values
-        (one always includes the term, another never) give ``inf``."""
+        (per-chain PIP above the threshold), `(n,)`; NaN where the indicator never changes.
+        The order is that of `chain_selected`. Chains each constant at different values
+        (one always includes the term, another never) give `inf`."""
         with np.errstate(divide="ignore", invalid="ignore"):
             rhat = _arviz_stats().rhat
             return np.array([_diag(rhat, self.gamma[..., k].astype(float)) for k in self.chain_selected()])
@@ -93,7 +93,7 @@ class EquationPosterior:
 
     @property
     def hdi_95(self) -> np.ndarray:
-        """95% highest-density interval of each coefficient given inclusion, ``(K, 2)``."""
+        """95% highest-density interval of each coefficient given inclusion, `(K, 2)`."""
         if "hdi" not in self._cache:
             out = np.full((len(self.names), 2), np.nan)
             for k in np.flatnonzero(self.gamma.any(axis=(0, 1))):
@@ -109,7 +109,7 @@ class EquationPosterior:
         return np.where(self.selected, self.mean, 0.0)
 
     def rhat(self) -> np.ndarray:
-        """Rank-normalised split R-hat of each selected coefficient (arviz), ``(n_selected,)``."""
+        """Rank-normalised split R-hat of each selected coefficient (arviz), `(n_selected,)`."""
         rhat = _arviz_stats().rhat
         return np.array([_diag(rhat, self.theta[..., k]) for k in np.flatnonzero(self.selected)])
 
@@ -140,11 +140,11 @@ class EquationPosterior:
         }
 
     def equation(self) -> str:
-        """``x2: -100.0e3(±0.6e3) x1**3 + ...`` (see :func:`format_coefficient`)."""
+        """`x2: -100.0e3(±0.6e3) x1**3 + ...` (see `format_coefficient`)."""
         return format_equation(self.state, self.terms(), self.kind)
 
     def to_arviz(self):
-        """The draws as an arviz DataTree (``theta`` and ``gamma`` over ``term``, ``sigma2``)."""
+        """The draws as an arviz DataTree (`theta` and `gamma` over `term`, `sigma2`)."""
         import arviz_base
 
         return arviz_base.from_dict(
@@ -165,7 +165,7 @@ def _safe(fn, draws):
 
 
 def _diag(fn, draws):
-    """An arviz diagnostic on ``(chains, draws)``; NaN where it is undefined (constant draws)."""
+    """An arviz diagnostic on `(chains, draws)`; NaN where it is undefined (constant draws)."""
     if np.ptp(draws) == 0.0:
         return float("nan")
     return float(fn(np.asarray(draws)))
@@ -174,19 +174,18 @@ def _diag(fn, draws):
 def format_coefficient(mean: float, std: float) -> str:
     """A coefficient and its posterior std in engineering notation.
 
+    The mean to 4 significant digits as `mantissa` + `e<exponent>`, the exponent a multiple
+    of 3 (none when it is 0) and the mantissa in [1, 1000); the std in the same exponent with
+    the same number of decimals. A zero mean takes the std's exponent.
+
     **Arguments:**
 
-    - ``mean``: the coefficient.
-    - ``std``: its posterior standard deviation; left out of the text when it is zero,
+    - `mean`: the coefficient.
+    - `std`: its posterior standard deviation; left out of the text when it is zero,
       negative or not finite.
 
-    **Returns:**
-
-    The mean to 4 significant digits as ``mantissa`` + ``e<exponent>``, the exponent a
-    multiple of 3 (none when it is 0) and the mantissa in [1, 1000); the std in the same
-    exponent with the same number of decimals: ``-99.82e3(±0.51e3)``, ``2.000(±0.007)``,
-    ``-123.5e-15(±5.0e-15)``. A zero mean takes the std's exponent; a non-finite mean is
-    ``nan``, ``inf`` or ``-inf``.
+    **Returns:** the text, e.g. `-99.82e3(±0.51e3)`, `2.000(±0.007)`, `-123.5e-15(±5.0e-15)`;
+    `"0"` for a zero mean without a std, and `nan`, `inf` or `-inf` for a non-finite mean.
     """
     mean, std = float(mean), float(std)
     if not math.isfinite(mean):
@@ -210,6 +209,20 @@ def format_coefficient(mean: float, std: float) -> str:
 
 
 def format_equation(state: str, terms: list[dict], kind: str = "drift") -> str:
+    """One discovered equation as a line of text, e.g. `x2: -100.0e3(±0.6e3) x1**3 + 2.000(±0.007) x2`.
+
+    Each coefficient is written by `format_coefficient`; a constant term (`"1"`) shows its
+    coefficient alone.
+
+    **Arguments:**
+
+    - `state`: the equation's state, e.g. `"x2"`.
+    - `terms`: the selected terms as `EquationPosterior.terms` gives them (dicts with
+      `"expr"`, `"mean"` and `"std"`), in order.
+    - `kind`: `"drift"` (default) or `"diffusion"` (labelled `x2 [diffusion]`).
+
+    **Returns:** the line, `"<label>: 0"` when no term is selected.
+    """
     label = f"{state}" if kind == "drift" else f"{state} [diffusion]"
     if not terms:
         return f"{label}: 0"

@@ -1,11 +1,11 @@
 """Progress on standard error (tqdm), for the command line and for notebooks; drawn only
-where it can be (a terminal or a Jupyter kernel, :func:`draws_bars`), never into a file or a pipe.
+where it can be (a terminal or a Jupyter kernel, `draws_bars`), never into a file or a pipe.
 
-* :class:`Stages`: an update's stages, one bar step each, its name shown while it runs, so
+* `Stages`: an update's stages, one bar step each, its name shown while it runs, so
   that no stage that takes seconds (compilation included) runs silently.
-* :class:`Bar` and :func:`tick`: progress from inside a compiled program (the sampler's
-  sweeps, a study's problems): the program calls ``jax.debug.callback(tick, n)`` and the
-  open bar, if any, advances by ``n``.
+* `Bar` and `tick`: progress from inside a compiled program (the sampler's
+  sweeps, a study's problems): the program calls `jax.debug.callback(tick, n)` and the
+  open bar, if any, advances by `n`.
 """
 
 from __future__ import annotations
@@ -20,9 +20,14 @@ _BAR: list = [None]  # the open Bar's tqdm, which tick() advances
 
 
 def draws_bars() -> bool:
-    """Whether progress can be drawn: standard error is a terminal, or this is a Jupyter
-    kernel (tqdm.auto draws a widget there). Redrawn bars in a file or a pipe are carriage
-    returns and escape codes that bury the messages a user or a script reads."""
+    """Whether progress can be drawn: standard error is a terminal, or this is a Jupyter kernel.
+
+    tqdm.auto draws a widget in a Jupyter kernel. Redrawn bars in a file or a pipe are carriage
+    returns and escape codes that bury the messages a user or a script reads.
+
+    **Returns:** True where bars can be drawn, False otherwise (also for a replaced or closed
+    standard error).
+    """
     if "ipykernel" in sys.modules:
         return True
     try:
@@ -32,14 +37,28 @@ def draws_bars() -> bool:
 
 
 def tick(n=1) -> None:
-    """Advance the open :class:`Bar` by ``n`` (a host callback; nothing when none is open)."""
+    """Advance the open `Bar` by `n` (a host callback; nothing when none is open).
+
+    **Arguments:**
+
+    - `n`: the number of steps, an integer or a scalar array (default 1).
+    """
     if _BAR[0] is not None:
         _BAR[0].update(int(n))
 
 
 class Bar:
-    """``with Bar(show, total, desc):`` a tqdm bar that :func:`tick` advances, or nothing
-    (``show`` False, :func:`draws_bars` False, or a bar already open)."""
+    """`with Bar(show, total, desc):` a tqdm bar that `tick` advances, or nothing.
+
+    Nothing is drawn when `show` is False, `draws_bars` is False, or a bar is already open
+    (then the outer bar counts).
+
+    **Arguments:**
+
+    - `show`: whether to draw the bar at all.
+    - `total`: the number of steps the bar counts to.
+    - `desc`: the bar's label.
+    """
 
     def __init__(self, show: bool, total: int, desc: str):
         self.show, self.total, self.desc = show, total, desc
@@ -61,11 +80,18 @@ class Bar:
 
 
 class Stages:
-    """``stages = Stages(enabled, total, "update")``; ``with stages("sampling"): ...``.
+    """`stages = Stages(enabled, total, "update")`; `with stages("sampling"): ...`.
 
-    ``total``: the number of stages announced (the bar's length). Disabled, or where
-    :func:`draws_bars` is False: no output and no tqdm import. ``seconds`` maps each stage to its wall time (kept either way; JAX runs
-    asynchronously, so a stage should end by blocking on its results)."""
+    Disabled, or where `draws_bars` is False: no output and no tqdm import. `seconds` maps
+    each stage to its wall time in s (kept either way; JAX runs asynchronously, so a stage
+    should end by blocking on its results).
+
+    **Arguments:**
+
+    - `enabled`: whether to draw the bar.
+    - `total`: the number of stages announced (the bar's length).
+    - `desc`: the bar's label.
+    """
 
     def __init__(self, enabled: bool, total: int, desc: str):
         self.seconds: dict[str, float] = {}
@@ -78,6 +104,16 @@ class Stages:
 
     @contextlib.contextmanager
     def __call__(self, name: str):
+        """Run one stage: show its name while it runs, then record its wall time and step the bar.
+
+        On an error or Ctrl-C inside the stage the bar is closed before the exception propagates.
+
+        **Arguments:**
+
+        - `name`: the stage's name, shown beside the bar and the key in `seconds`.
+
+        **Returns:** a context manager (it yields None) around the stage's work.
+        """
         start = time.perf_counter()
         if self._bar is not None:
             self._bar.set_postfix_str(name)

@@ -1,7 +1,7 @@
 """Memory a run needs, estimated from its shapes before anything is allocated.
 
-Every estimate is compared with the memory available (:func:`available_bytes`); an
-oversize request is refused at once with a one-line :class:`DataError` that names the
+Every estimate is compared with the memory available (`available_bytes`); an
+oversize request is refused at once with a one-line `DataError` that names the
 option and the estimate, instead of a run that allocates for minutes and is killed.
 The estimates are peaks to within a small factor (the copies each stage makes), not exact.
 
@@ -31,10 +31,13 @@ _KEY = 8  # one threefry key: two uint32
 
 
 def available_bytes() -> int:
-    """Memory this process may still take: ``MemAvailable`` of ``/proc/meminfo`` (else free
-    pages from ``os.sysconf``), lowered to a cgroup's remaining limit.
+    """Memory this process may still take, in bytes.
 
-    **Returns:** bytes (``2**62`` when nothing can be read: no refusal)."""
+    `MemAvailable` of `/proc/meminfo` (else free pages from `os.sysconf`), lowered to a
+    cgroup's remaining limit.
+
+    **Returns:** the bytes available, an int (`2**62` when nothing can be read: no refusal).
+    """
     avail = None
     try:
         with open("/proc/meminfo") as f:
@@ -61,7 +64,14 @@ def available_bytes() -> int:
 
 
 def size_text(nbytes: float) -> str:
-    """``nbytes`` as ``"37 GiB"``, ``"1.5 TiB"``."""
+    """A byte count as a reader's text, such as `"37 GiB"` or `"1.5 TiB"`.
+
+    **Arguments:**
+
+    - `nbytes`: the size in bytes.
+
+    **Returns:** the text: two significant digits below 10 of the unit, else a whole number.
+    """
     units = ("bytes", "KiB", "MiB", "GiB", "TiB", "PiB", "EiB")
     value, unit = float(nbytes), 0
     while value >= 1024 and unit < len(units) - 1:
@@ -70,7 +80,7 @@ def size_text(nbytes: float) -> str:
 
 
 def _count(n) -> str:
-    """An integer in a message: plain below a million, else ``1e+09``."""
+    """An integer in a message: plain below a million, else `1e+09`."""
     if n > 1e300:
         return "more than 1e+300"
     return str(int(n)) if n < 1_000_000 else f"{float(n):.3g}"
@@ -87,18 +97,21 @@ def _require(need: float, lead: str, what: str) -> None:
 
 
 def count_terms(spec: str, num_states: int, num_inputs: int) -> int:
-    """Number of terms of a library spec (formats.md) for ``m`` states and ``n`` inputs,
-    counted without building them (``poly:P`` has ``C(m + P, P)`` monomials), so a huge
-    library is refused before its names exist. A token it cannot read counts nothing
-    (:func:`dtwin_jax.library.parse_library` says what is wrong with it); a listed term
-    met twice counts twice.
+    """Number of terms of a library spec (formats.md) for `m` states and `n` inputs.
+
+    Counted without building them (`poly:P` has `C(m + P, P)` monomials), so a huge library is
+    refused before its names exist. A token it cannot read counts nothing
+    (`dtwin_jax.library.parse_library` says what is wrong with it); a listed term met twice
+    counts twice.
 
     **Arguments:**
 
-    - `spec`: the library spec, e.g. ``"poly:3,sign"``.
-    - `num_states`, `num_inputs`: ``m`` and ``n``.
+    - `spec`: the library spec, e.g. `"poly:3,sign"`.
+    - `num_states`: the number of states `m`.
+    - `num_inputs`: the number of inputs `n` (the `input` family's terms).
 
-    **Returns:** the number of terms ``K`` (an int, huge for a typo such as ``poly:40``)."""
+    **Returns:** the number of terms `K` (an int, huge for a typo such as `poly:40`).
+    """
     m, total = int(num_states), 0
     for token in (t.strip() for t in str(spec).split(",")):
         name, _, arg = token.partition(":")
@@ -115,49 +128,84 @@ def count_terms(spec: str, num_states: int, num_inputs: int) -> int:
 
 
 def check_terms(count: int, spec: str) -> None:
-    """Refuse a library of more than :data:`MAX_TERMS` terms (``count``, from
-    :func:`dtwin_jax.library.count_terms`) before its names are built."""
+    """Refuse a library of more than `MAX_TERMS` terms before its names are built.
+
+    **Arguments:**
+
+    - `count`: the library's number of terms, from `dtwin_jax.library.count_terms`.
+    - `spec`: the library spec, for the message.
+
+    Raises `DataError` when `count` exceeds `MAX_TERMS`.
+    """
     if count > MAX_TERMS:
         raise DataError(f"library '{spec}' has {_count(count)} terms; at most {MAX_TERMS} are supported")
 
 
 def check_num_inputs(value, inputs: int, where: str) -> None:
-    """A saved twin's ``num_inputs`` (``where`` names its file) before a library is built for
-    it: 0 (no input terms) or the nominal ``B``'s ``inputs`` columns."""
+    """Check a saved twin's `num_inputs` before a library is built for it.
+
+    It must be 0 (no input terms) or the nominal `B`'s number of columns.
+
+    **Arguments:**
+
+    - `value`: the twin's `num_inputs`, as read from its file.
+    - `inputs`: the number of columns of the nominal `B` (the model's inputs `n`).
+    - `where`: names the twin's file in the message.
+
+    Raises `DataError` for any other value (or a non-int).
+    """
     if type(value) is not int or value not in (0, inputs):
         raise DataError(f"{where} has num_inputs {value!r}; expected 0 or {inputs} (the nominal B's columns)")
 
 
 def check_nominal(d: int, extra_states: int, n: int) -> None:
-    """The model's ``m = 2d + E`` states: the state-space smoother and the simulators hold
-    ``m x m`` matrices (covariances, Jacobians) at every step of a window; ``16 m^2`` floats
-    stand for them here."""
+    """Refuse a nominal model whose `m = 2d + E` states do not fit in memory.
+
+    The state-space smoother and the simulators hold `m x m` matrices (covariances, Jacobians)
+    at every step of a window; `16 m^2` floats stand for them here.
+
+    **Arguments:**
+
+    - `d`: the degrees of freedom (the size of `M`, `C` and `K`).
+    - `extra_states`: the extra states `E` beyond the `2d` displacements and velocities.
+    - `n`: the number of inputs (columns of `B`).
+
+    Raises `DataError` naming `extra_states` when the estimate exceeds `available_bytes`.
+    """
     m = 2 * d + extra_states
     _require(16 * m * m * _F64 + 16 * m * max(n, 1) * _F64, f"extra_states {extra_states}",
              f"the nominal model's {_count(m)}-state matrices")
 
 
 def _lead(values: dict, ratios: dict, names: dict) -> str:
-    """``"--draws 1000000000"``: the option furthest above its default."""
+    """`"--draws 1000000000"`: the option furthest above its default."""
     key = max(ratios, key=ratios.get)
     return f"{names[key]} {values[key]}"
 
 
 def check_sampler(equations: int, terms: int, chains: int, draws: int, burn_in: int, *,
                   library: str = "", names: dict | None = None) -> None:
-    """The Gibbs draws of ``equations`` regressions of ``terms`` terms: per sweep and chain
-    ``theta`` (float64), ``gamma`` (bool) and four scalars, kept over burn-in and draws in the
-    chunks, their concatenation and the stack over equations, plus one key per sweep.
+    """Refuse Gibbs draws that do not fit in memory.
+
+    The draws of `equations` regressions of `terms` terms: per sweep and chain `theta`
+    (float64), `gamma` (bool) and four scalars, kept over burn-in and draws in the chunks,
+    their concatenation and the stack over equations, plus one key per sweep.
 
     **Arguments:**
 
-    - `equations`, `terms`: regressions ``q`` and library size ``K``.
-    - `chains`, `draws`, `burn_in`: the sampler's settings (sweeps per chain).
-    - `library`: the spec, for the message; `names`: how the message calls draws, chains,
-      burn_in and library (default the Python names, :data:`API_NAMES`).
+    - `equations`: the number of regressions `q`.
+    - `terms`: the library size `K`.
+    - `chains`: the number of chains.
+    - `draws`: the draws kept per chain.
+    - `burn_in`: the burn-in sweeps per chain.
+    - `library`: the library spec, for the message (default: the number of terms stands for it).
+    - `names`: how the message calls draws, chains, `burn_in` and library (keys `"draws"`,
+      `"chains"`, `"burn_in"`, `"library"`), e.g. the command line's options; None (default)
+      for the Python names, `API_NAMES`.
 
-    Raises :class:`DataError` naming the option furthest above its default when the
-    estimate exceeds :func:`available_bytes`."""
+    Raises `DataError` naming the option furthest above its default when the
+    estimate exceeds `available_bytes`.
+    """
     names = names or API_NAMES
     per_draw = terms * (_F64 + 1) + 4 * _F64
     sweeps = burn_in + draws
@@ -170,8 +218,23 @@ def check_sampler(equations: int, terms: int, chains: int, draws: int, burn_in: 
 
 
 def check_design(samples: int, terms: int, equations: int, *, library: str = "", names: dict | None = None) -> None:
-    """The design matrix ``samples x terms`` (float64; a few copies: the column checks, the
-    statistics, the residuals) and every equation's ``terms x terms`` Gram."""
+    """Refuse a design matrix that does not fit in memory.
+
+    The design matrix `samples x terms` (float64; a few copies: the column checks, the
+    statistics, the residuals) and every equation's `terms x terms` Gram.
+
+    **Arguments:**
+
+    - `samples`: the number of samples (rows of the design matrix).
+    - `terms`: the library size `K`.
+    - `equations`: the number of regressions `q`.
+    - `library`: the library spec, for the message.
+    - `names`: how the message calls the library option (key `"library"`); None (default) for
+      the Python names, `API_NAMES`.
+
+    Raises `DataError` naming the library (or the data's samples, when they dominate) when the
+    estimate exceeds `available_bytes`.
+    """
     names = names or API_NAMES
     need = 4 * samples * terms * _F64 + 2 * equations * terms * terms * _F64
     lead = f"{names['library']} {library}" if terms * 1000 > samples else f"the data's {_count(samples)} samples"
@@ -180,15 +243,36 @@ def check_design(samples: int, terms: int, equations: int, *, library: str = "",
 
 def check_update(samples: int, terms: int, equations: int, chains: int, draws: int, burn_in: int, *,
                  library: str = "", names: dict | None = None) -> None:
-    """:func:`check_design` and :func:`check_sampler` of one update, sampler first (the
-    common mistake)."""
+    """`check_design` and `check_sampler` of one update, sampler first (the common mistake).
+
+    **Arguments:**
+
+    - `samples`: the number of samples (rows of the design matrix).
+    - `terms`: the library size `K`.
+    - `equations`: the number of regressions `q`.
+    - `chains`: the number of chains.
+    - `draws`: the draws kept per chain.
+    - `burn_in`: the burn-in sweeps per chain.
+    - `library`: the library spec, for the message.
+    - `names`: how the messages call the options, as for `check_sampler`; None (default) for
+      `API_NAMES`.
+    """
     check_sampler(equations, terms, chains, draws, burn_in, library=library, names=names)
     check_design(samples, terms, equations, library=library, names=names)
 
 
 def check_posterior_draws(draws: int, coefficients: int, *, option: str = "num_draws") -> None:
-    """Stacked posterior twins: ``draws x coefficients`` floats and their draw indices (a
-    few copies)."""
+    """Refuse stacked posterior twins that do not fit in memory.
+
+    `draws x coefficients` floats and their draw indices (a few copies).
+
+    **Arguments:**
+
+    - `draws`: the number of posterior draws.
+    - `coefficients`: the number of coefficients per draw (all equations' terms together).
+    - `option`: how the message calls the number of draws (default `"num_draws"`; `"--draws"`
+      on the command line).
+    """
     need = 3 * draws * (coefficients + 2) * _F64
     _require(need, f"{option} {draws}", f"the posterior twins ({_count(draws)} draws x "
              f"{_count(coefficients)} coefficients)")
@@ -196,14 +280,33 @@ def check_posterior_draws(draws: int, coefficients: int, *, option: str = "num_d
 
 def check_prediction(draws: int, samples: int, states: int, *, option: str = "num_draws",
                      what: str = "predicted paths", unit: str = "draws") -> None:
-    """Simulated paths ``draws x samples x states`` (float64) and the copies the quantiles
-    sort (or the solver keeps: ``what`` and ``unit`` name them, e.g. a demo's records)."""
+    """Refuse simulated paths that do not fit in memory.
+
+    Paths `draws x samples x states` (float64) and the copies the quantiles sort (or the
+    solver keeps).
+
+    **Arguments:**
+
+    - `draws`: the number of paths (posterior draws, or a demo's records).
+    - `samples`: the time samples per path.
+    - `states`: the states per sample `m`.
+    - `option`: how the message calls the number of paths (default `"num_draws"`).
+    - `what`: what the message calls the paths (default `"predicted paths"`).
+    - `unit`: what the message calls one path (default `"draws"`; a demo's `"records"`, say).
+    """
     need = 4 * draws * samples * states * _F64
     _require(need, f"{option} {draws}",
              f"the {what} ({_count(draws)} {unit} x {_count(samples)} samples x {states} states)")
 
 
 def check_file_arrays(nbytes: int, where: str) -> None:
-    """A file's arrays (``nbytes`` as their headers declare them) before they are read: the
-    reader holds them and a float64 copy or two."""
+    """Refuse a file's arrays that do not fit in memory, before they are read.
+
+    The reader holds them and a float64 copy or two.
+
+    **Arguments:**
+
+    - `nbytes`: the arrays' size in bytes, as their headers declare them (or the file's size).
+    - `where`: names the file in the message.
+    """
     _require(3 * nbytes, where, "its arrays")

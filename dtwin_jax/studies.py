@@ -1,23 +1,23 @@
 """Noise-sensitivity studies (the paper's Fig. 10): noise levels x replicate data sets x
 chains in one compiled program.
 
-For ``L`` noise levels and ``Rp`` replicate data sets, :func:`noise_sweep` simulates the
+For `L` noise levels and `Rp` replicate data sets, `noise_sweep` simulates the
 replicates (diffrax, vmapped), corrupts every replicate at every level (vmapped over levels),
 denoises, builds targets and sufficient statistics, runs the spike-and-slab Gibbs kernel
-(:func:`dtwin_jax.sampler.sample`) for every (level, replicate, equation) and summarises the
+(`dtwin_jax.sampler.sample`) for every (level, replicate, equation) and summarises the
 draws: PIPs, posterior mean/std of every coefficient given inclusion, a 95% interval from
 quantiles, exact-support recovery and relative errors of the true terms. No Python loop over
-levels: one ``jit`` per shape and setting.
+levels: one `jit` per shape and setting.
 
-Random numbers are common across levels: replicate ``r`` has one simulation, one unit noise
+Random numbers are common across levels: replicate `r` has one simulation, one unit noise
 draw (scaled by the level) and one set of chain keys at every level, so the curves against
-the level are not blurred by independent noise per level (see :func:`study_keys`).
+the level are not blurred by independent noise per level (see `study_keys`).
 
-Framework 2 (output-only): the drift (simulation of ``records`` Brownian-forced records per
+Framework 2 (output-only): the drift (simulation of `records` Brownian-forced records per
 replicate, Kramers-Moyal statistics, sampling, summaries) is one compiled program; the
-diffusion (likelihood maximum by :func:`dtwin_jax.output_only.statespace.diffusion_mle`, its EM targets'
+diffusion (likelihood maximum by `dtwin_jax.output_only.statespace.diffusion_mle`, its EM targets'
 statistics) another, mapped over the (level, replicate) pairs, and its sampling a third. The
-diffusion is the slow part on CPU (~10 s per level and replicate with 100 records).
+diffusion is the slow part on CPU.
 """
 
 from __future__ import annotations
@@ -64,9 +64,9 @@ FRAMEWORKS = ("input-output", "output-only")
 
 
 class CoefficientSummary(NamedTuple):
-    """Summary of one equation's draws, every array ``(..., K)`` (``(...)`` for the last
-    two). Coefficient statistics are given inclusion, as in :class:`posterior.EquationPosterior`;
-    ``lower``/``upper`` are the 2.5% and 97.5% quantiles (NaN for a never-included term)."""
+    """Summary of one equation's draws, every array `(..., K)` (`(...)` for the last
+    two). Coefficient statistics are given inclusion, as in `posterior.EquationPosterior`;
+    `lower`/`upper` are the 2.5% and 97.5% quantiles (NaN for a never-included term)."""
 
     pip: jax.Array
     mean: jax.Array
@@ -79,8 +79,22 @@ class CoefficientSummary(NamedTuple):
 
 
 def summarise(trace: sampler.GibbsTrace, truth, support, pip_threshold: float = 0.5) -> CoefficientSummary:
-    """Summaries of one equation's trace (leading axes ``(chains, draws)``); ``truth (K,)``
-    the true coefficients, ``support (K,)`` bool the terms that should be found. Jittable."""
+    """Summaries of one equation's trace (jittable).
+
+    Coefficient statistics are given inclusion; `lower`/`upper` are the 2.5% and 97.5%
+    quantiles of the included draws.
+
+    **Arguments:**
+
+    - `trace`: the equation's `sampler.GibbsTrace`, leading axes `(chains, draws)`.
+    - `truth`: the true coefficients `(K,)`.
+    - `support`: the terms that should be found, `(K,)` bool.
+    - `pip_threshold`: the PIP above which a term counts as selected (default 0.5).
+
+    **Returns:** a `CoefficientSummary`: `pip`, `mean`, `std`, `lower`, `upper`, `rel_error`
+    each `(K,)`, `support_exact` (the selected terms are exactly `support`) and
+    `num_selected`, scalars.
+    """
     K = trace.theta.shape[-1]
     gamma = trace.gamma.reshape(-1, K)
     theta = trace.theta.reshape(-1, K)
@@ -99,15 +113,25 @@ def summarise(trace: sampler.GibbsTrace, truth, support, pip_threshold: float = 
 
 
 def study_keys(seed: int, replicates: int, num_equations: int):
-    """``(simulation (Rp,), noise (Rp,), chains (Rp, q))`` keys; the same at every level."""
+    """The random keys of a study, the same at every noise level.
+
+    **Arguments:**
+
+    - `seed`: the study's seed.
+    - `replicates`: the number of replicate data sets `Rp`.
+    - `num_equations`: the number of regressed equations `q`.
+
+    **Returns:** `(simulation, noise, chains)`: keys `(Rp,)` for the replicates' simulations,
+    `(Rp,)` for their unit noise draws, and `(Rp, q)` for the chains of every equation.
+    """
     k_sim, k_noise, k_chain = jax.random.split(jax.random.key(seed), 3)
     chains = jax.random.split(k_chain, replicates * num_equations).reshape(replicates, num_equations)
     return jax.random.split(k_sim, replicates), jax.random.split(k_noise, replicates), chains
 
 
 def _sample_and_summarise(keys, stats, truth, support, settings, method, pip_threshold):
-    """Sample and summarise a batch of problems: ``keys (B,)``, ``stats`` with leading ``B``,
-    ``truth``/``support (B, K)``. Only the ``(K,)`` summaries leave the loop body, so a
+    """Sample and summarise a batch of problems: `keys (B,)`, `stats` with leading `B`,
+    `truth`/`support (B, K)`. Only the `(K,)` summaries leave the loop body, so a
     problem's draws never coexist with another's (memory stays at one trace)."""
     def one(key, st, tr, sup):
         trace = sampler.sample(key, st, settings, chain_method=method)
@@ -123,7 +147,7 @@ def _flatten(tree, lead: int):
 
 
 def _problems(stats, chain_keys, truth, support, levels):
-    """Stats ``(L, Rp, q, ...)`` -> flat problems with their keys (common over levels)."""
+    """Stats `(L, Rp, q, ...)` -> flat problems with their keys (common over levels)."""
     L = levels.shape[0]
     keys = jnp.broadcast_to(chain_keys, (L,) + chain_keys.shape)
     q, K = truth.shape
@@ -137,7 +161,7 @@ def _problems(stats, chain_keys, truth, support, levels):
 
 
 def _io_stats(example: systems.Example, lib: Library, levels, sim_keys, noise_keys, half_width: int):
-    """Statistics ``(L, Rp, q, ...)``: replicates simulated (vmapped), each corrupted at every
+    """Statistics `(L, Rp, q, ...)`: replicates simulated (vmapped), each corrupted at every
     level (vmapped), kinematic smoothing, targets, library, input-noise correction."""
     nominal = example.system.nominal
     sims = jax.vmap(lambda k: systems.simulate_example(example, k))(sim_keys)
@@ -167,7 +191,7 @@ def _io_program(example, lib, levels, keys, truth, support, half_width, settings
 
 
 def _ensembles(example, sim_keys, records: int):
-    """Brownian-forced ensembles ``(Rp, records, N, m)``, one per replicate."""
+    """Brownian-forced ensembles `(Rp, records, N, m)`, one per replicate."""
     return jax.vmap(lambda k: systems.simulate_example_sde(example, k, num_records=records)["x"])(sim_keys)
 
 
@@ -218,8 +242,8 @@ PILOT_WINDOW = 16
 
 def _diffusion_stats_one(example, lib, dlib, coef, x, level, key):
     """The diffusion's EM-target statistics of one noisy ensemble, by the same function as
-    :func:`update_output_only` (:func:`output_only_stats.diffusion_statistics`), given the
-    drift ``coef (q, K)`` (zero for unselected terms). Pure: mapped over a study's pairs."""
+    `update_output_only` (`output_only_stats.diffusion_statistics`), given the
+    drift `coef (q, K)` (zero for unselected terms). Pure: mapped over a study's pairs."""
     nominal = example.system.nominal
     y = measurement.add_noise(key, x, level)  # the same noise as in the drift program
     regressed = tuple(int(i) for i in nominal.regressed_index)
@@ -231,8 +255,8 @@ def _diffusion_stats_one(example, lib, dlib, coef, x, level, key):
 
 @eqx.filter_jit
 def _diffusion_program(example, lib, dlib, levels, coef, x, noise_keys, batch_size):
-    """Diffusion statistics of every (level, replicate) pair, ``coef (L, Rp, q, K)``, ensembles
-    ``x (Rp, records, N, m)``: one compiled program, lax.map over the pairs in batches."""
+    """Diffusion statistics of every (level, replicate) pair, `coef (L, Rp, q, K)`, ensembles
+    `x (Rp, records, N, m)`: one compiled program, lax.map over the pairs in batches."""
     L, Rp = coef.shape[:2]
     lv = jnp.repeat(levels, Rp)
     rep = jnp.tile(jnp.arange(Rp), L)
@@ -248,11 +272,11 @@ def _diffusion_program(example, lib, dlib, levels, coef, x, noise_keys, batch_si
 
 @dataclass
 class SweepResult:
-    """A noise sweep: summaries ``(L, Rp, q, K)`` of every equation at every level and
-    replicate (``summary``), and for framework 2 the diffusion's in ``diffusion``.
+    """A noise sweep: summaries `(L, Rp, q, K)` of every equation at every level and
+    replicate (`summary`), and for framework 2 the diffusion's in `diffusion`.
 
-    ``names (K,)`` library terms, ``states (q,)`` regressed states, ``truth (q, K)`` true
-    coefficients and ``support (q, K)`` the terms that should be found."""
+    `names (K,)` library terms, `states (q,)` regressed states, `truth (q, K)` true
+    coefficients and `support (q, K)` the terms that should be found."""
 
     example: str
     framework: str
@@ -275,21 +299,21 @@ class SweepResult:
 
     @property
     def support_recovery(self) -> np.ndarray:
-        """``(L,)`` fraction of replicates whose every equation has the exact support."""
+        """`(L,)` fraction of replicates whose every equation has the exact support."""
         return np.mean(np.all(self.summary.support_exact, axis=2), axis=1)
 
     def true_terms(self) -> list[tuple[int, int]]:
-        """``(equation, term)`` indices of the true support."""
+        """`(equation, term)` indices of the true support."""
         return [tuple(int(i) for i in ij) for ij in np.argwhere(self.support)]
 
     def term_errors(self) -> dict[str, np.ndarray]:
-        """``{"x2: x1**3": (L, Rp) relative errors}`` for every true term."""
+        """`{"x2: x1**3": (L, Rp) relative errors}` for every true term."""
         return {f"{self.states[e]}: {self.names[k]}": np.asarray(self.summary.rel_error[:, :, e, k])
                 for e, k in self.true_terms()}
 
     def table(self) -> list[dict]:
         """Per level: support recovery and the median (over replicates) error of every true
-        term, in percent (diffusion terms prefixed ``diffusion``)."""
+        term, in percent (diffusion terms prefixed `diffusion`)."""
         rows = []
         for i, level in enumerate(self.levels):
             row = {"level": float(level), "support_recovery_pct": 100 * float(self.support_recovery[i])}
@@ -341,6 +365,12 @@ class SweepResult:
         }
 
     def to_csv(self, path) -> None:
+        """Write `to_rows` as a CSV file (atomically): one row per level, replicate and true term.
+
+        **Arguments:**
+
+        - `path`: the CSV file to write.
+        """
         from dtwin_jax.io import atomic_path
 
         rows = self.to_rows()
@@ -370,7 +400,7 @@ def _check(levels, replicates: int, records: int, framework: str) -> np.ndarray:
 
 
 def _truth(example: systems.Example, names, states) -> tuple[np.ndarray, np.ndarray]:
-    """True coefficients ``(q, K)`` and the identifiable support ``(q, K)``."""
+    """True coefficients `(q, K)` and the identifiable support `(q, K)`."""
     truth = example.true_coefficients(names)
     ident = example.identifiable()
     support = np.array([[n in ident.get(s, {}) for n in names] for s in states])
@@ -391,22 +421,36 @@ def noise_sweep(
     progress: bool = True,
     batch_size: int | None = None,
 ) -> SweepResult:
-    """Discover the perturbation of ``example`` at every noise level ``levels (L,)`` (fractions
-    of each signal's std, in [0, 1]) for ``replicates`` independent data sets.
+    """Discover the perturbation of `example` at every noise level for independent data sets.
 
-    ``framework``: ``"input-output"`` (one measured record of states, inputs and rates per
-    data set, as the paper) or ``"output-only"`` (an ensemble of ``records`` Brownian-forced
-    records of the states per data set; with ``diffusion`` the diffusion too, see the module
-    docstring). ``batch_size``: (level, replicate) pairs whose output-only statistics are
-    vmapped together; by default one at a time on CPU (bounded memory) and up to
-    :data:`ACCELERATOR_BATCH` (16) at once on an accelerator; a large GPU takes more (the
-    14 x 4 sweep with 100 records, drift and diffusion, all 56 pairs at once: 51 s on an
-    H200, ~0.4 GB per pair). Returns a :class:`SweepResult` with arrays
-    ``(L, replicates, q, K)``.
-
-    ``progress`` shows one bar step per sampled (level, replicate, equation) problem, advanced
+    `progress` shows one bar step per sampled (level, replicate, equation) problem, advanced
     from inside the compiled program by a host callback; compilation, simulation and the
     statistics come before its first step, and the output-only diffusion loop has its own bar.
+
+    **Arguments:**
+
+    - `example`: a `systems.Example`, or the name of one in `systems.EXAMPLES` (`"example1"`,
+      say).
+    - `levels`: the noise levels `(L,)`, fractions of each signal's std in [0, 1] (default
+      `DEFAULT_LEVELS`, 14 levels from 0 to 0.6).
+    - `replicates`: the number of independent data sets `Rp` per level (default 4).
+    - `framework`: `"input-output"` (default; one measured record of states, inputs and rates
+      per data set, as the paper) or `"output-only"` (an ensemble of `records` Brownian-forced
+      records of the states per data set).
+    - `settings`: the sampler's `SamplerSettings` (chains, draws, burn-in; default `SamplerSettings()`).
+    - `seed`: the seed of `study_keys` (default 0).
+    - `records`: Brownian-forced records per data set, output-only only (default 100).
+    - `pip_threshold`: the PIP above which a term counts as selected (default 0.5).
+    - `diffusion`: output-only only: discover the diffusion too (default True; see the module
+      docstring).
+    - `progress`: show progress bars on standard error (default True).
+    - `batch_size`: (level, replicate) pairs whose output-only statistics are vmapped
+      together; None (default): one at a time on CPU (bounded memory) and up to
+      `ACCELERATOR_BATCH` (16) at once on an accelerator. A large GPU takes more (an H200 holds
+      all 56 pairs of the 14 x 4 sweep with 100 records, drift and diffusion, at once).
+
+    **Returns:** a `SweepResult` with summaries `(L, replicates, q, K)` (and, output-only with
+    `diffusion`, the diffusion's in its `diffusion`).
     """
     ex = systems.EXAMPLES[example]() if isinstance(example, str) else example
     levels = _check(levels, replicates, records, framework)

@@ -1,17 +1,17 @@
 """Traced programs kept on disk for new processes (the command line).
 
 JAX's persistent compilation cache lets a new process skip XLA compilation, not tracing and
-lowering: for a cold ``dtwin-jax discover`` of a 1 s window those took ~2 s of ~5 (the
-kinematic smoother's Newton noise fit, the sampler). :func:`call` runs a jitted function
-through a serialized :mod:`jax.export` of it, kept in a folder that :func:`enable` names
-(:func:`dtwin_jax.configure_runtime` names one beside its compilation cache, so the command
+lowering: for a cold `dtwin-jax discover` of a 1 s window those took ~2 s of ~5 (the
+kinematic smoother's Newton noise fit, the sampler). `call` runs a jitted function
+through a serialized `jax.export` of it, kept in a folder that `enable` names
+(`dtwin_jax.configure_runtime` names one beside its compilation cache, so the command
 line and the processes that opt in use it) and keyed by the function's name, the shapes and
 dtypes of its arguments, its static arguments, the platform it runs on (a program exported
 for the CPU fails on a GPU), the jax version and a digest of dtwin-jax's source. Otherwise,
 or inside another trace, it is a plain call: within one process an export only costs a
 second lowering (three of the test files ran in 240.2 s without it against 254.7 s with it).
 Programs with host callbacks (progress bars) cannot be exported, so equinox's run-time checks
-(``eqx.error_if``, in diffrax's solves) are traced for an export as NaN outputs instead of
+(`eqx.error_if`, in diffrax's solves) are traced for an export as NaN outputs instead of
 raised errors (callers of such programs already treat a non-finite result as a failure). A
 program that still holds a callback (one whose inner programs this process traced before
 with the checks on) runs as a plain call in this process.
@@ -40,20 +40,20 @@ _folder: Path | None = None
 
 
 def enable(folder: str | os.PathLike | None) -> None:
-    """Keep exported programs in ``folder`` (None: stop). Process set-up, as the compilation
-    cache is: :func:`dtwin_jax.configure_runtime` calls it."""
+    """Keep exported programs in `folder` (None: stop). Process set-up, as the compilation
+    cache is: `dtwin_jax.configure_runtime` calls it."""
     global _folder
     _folder = None if folder is None else Path(folder)
 
 
 def enabled() -> bool:
-    """Whether :func:`call` runs exported programs (a folder is set)."""
+    """Whether `call` runs exported programs (a folder is set)."""
     return _folder is not None
 
 
 def exported(name: str, static_argnums: tuple[int, ...] = ()) -> Callable:
-    """Decorate a jitted function so that its calls run through :func:`call` under ``name``;
-    the arguments at ``static_argnums`` are static (hashable; their ``repr`` is part of the
+    """Decorate a jitted function so that its calls run through `call` under `name`;
+    the arguments at `static_argnums` are static (hashable; their `repr` is part of the
     key)."""
 
     def wrap(fn: Callable) -> Callable:
@@ -74,10 +74,10 @@ def exported(name: str, static_argnums: tuple[int, ...] = ()) -> Callable:
 
 
 def call(name: str, fn: Callable, args: tuple, static: tuple = ()):
-    """``fn(*args)`` through a disk-cached export. ``args``: a pytree of arrays (its
-    structure is part of the key); ``static``: hashable values that change the program
-    (their ``repr`` is part of the key); ``fn`` returns a pytree of arrays and of the
-    package's NamedTuples (:func:`_register`)."""
+    """`fn(*args)` through a disk-cached export. `args`: a pytree of arrays (its
+    structure is part of the key); `static`: hashable values that change the program
+    (their `repr` is part of the key); `fn` returns a pytree of arrays and of the
+    package's NamedTuples (`_register`)."""
     leaves, tree = jax.tree.flatten(args)
     folder = _folder
     if folder is None or any(isinstance(a, jax.core.Tracer) for a in leaves):
@@ -126,7 +126,7 @@ def _source_digest() -> str:
 @contextlib.contextmanager
 def _checks_as_nan():
     """Equinox's run-time checks traced as NaN outputs instead of host callbacks, which
-    ``jax.export`` cannot serialize. Inner programs traced meanwhile keep that form for the
+    `jax.export` cannot serialize. Inner programs traced meanwhile keep that form for the
     rest of the process (JAX's trace cache ignores the setting): a failed check there gives
     NaN, not an exception."""
     from equinox import _errors

@@ -1,7 +1,7 @@
 """Libraries padded to a few sizes, so that one compiled sampler serves every library of a
 size class instead of one program per K (compiling one takes seconds; running it, often
 less). The padding columns are zero: the kernel treats a zero column as no term
-(:mod:`dtwin_jax.sampler.kernel`), so the posterior of the real columns is unchanged; the
+(`dtwin_jax.sampler.kernel`), so the posterior of the real columns is unchanged; the
 random stream, and so the draws, depend on the padded size."""
 
 from __future__ import annotations
@@ -25,19 +25,19 @@ TABLE_BUCKETS = (4, 8) + BUCKETS
 
 
 def bucket(K: int, sizes: tuple[int, ...] = BUCKETS) -> int:
-    """The padded size of a K-term library: the first of ``sizes`` that holds it, else K."""
+    """The padded size of a K-term library: the first of `sizes` that holds it, else K."""
     return next((b for b in sizes if K <= b), K)
 
 
 def active_slots(K: int) -> int:
-    """The default number of active-set slots for a ``K``-term library (before padding):
-    the first of :data:`SLOT_CLASSES` that holds it, at most 32."""
+    """The default number of active-set slots for a `K`-term library (before padding):
+    the first of `SLOT_CLASSES` that holds it, at most 32."""
     return min(bucket(K, SLOT_CLASSES), SLOT_CLASSES[-1])
 
 
 def pad_stats(stats, size: int, xp=jnp):
-    """``SuffStats`` with ``size - K`` zero columns appended (``xp``: ``jax.numpy``, or
-    ``numpy`` on the host)."""
+    """`SuffStats` with `size - K` zero columns appended (`xp`: `jax.numpy`, or
+    `numpy` on the host)."""
     extra = size - stats.gram.shape[-1]
     if extra == 0:
         return stats
@@ -47,6 +47,6 @@ def pad_stats(stats, size: int, xp=jnp):
 
 
 def unpad_trace(trace, K: int):
-    """A trace's ``gamma`` and ``theta`` cut back to the library's K columns."""
+    """A trace's `gamma` and `theta` cut back to the library's K columns."""
     return trace._replace(gamma=trace.gamma[..., :K], theta=trace.theta[..., :K])
 

@@ -3,8 +3,8 @@ per-sweep keys, the output-only first guesses) compile without LLVM's optimizati
 half the compilation, the same bits out in the cases measured, and runs 1.5x longer, which
 at their size nobody sees (docs/performance.md, compiling less). Long-running programs (the
 sampler's chunks, the filters, simulations) keep LLVM's optimizations: at level 0 they run
-2-10x longer. In a process that :func:`dtwin_jax.configure_runtime` sets up for the CPU they
-compile at level 2 instead of XLA's 3 (:func:`prefer_level_2`): the sampler's chunk 25% and
+2-10x longer. In a process that `dtwin_jax.configure_runtime` sets up for the CPU they
+compile at level 2 instead of XLA's 3 (`prefer_level_2`): the sampler's chunk 25% and
 the output-only drift statistics 13-23% sooner, and every program measured runs as fast."""
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ QUICK_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensiv
 
 
 def quick_jit(static_argnums=()):
-    """``jax.jit`` with :data:`QUICK_COMPILE` for a call from Python; inside another trace
-    (an export by :mod:`dtwin_jax._compile.aot`, a caller's jit or vmap) the plain function, which
+    """`jax.jit` with `QUICK_COMPILE` for a call from Python; inside another trace
+    (an export by `dtwin_jax._compile.aot`, a caller's jit or vmap) the plain function, which
     that trace's program holds (JAX takes compiler options on top-level programs only)."""
 
     def wrap(fun):
@@ -41,7 +41,7 @@ LEVEL_2 = "--xla_backend_optimization_level=2"
 
 
 def prefer_level_2() -> bool:
-    """Append :data:`LEVEL_2` to ``$XLA_FLAGS`` unless it sets a level already (the user's
+    """Append `LEVEL_2` to `$XLA_FLAGS` unless it sets a level already (the user's
     choice stands). XLA reads the variable at its first compilation, and JAX keys the
     persistent cache on it. Returns whether the flag was added."""
     flags = os.environ.get("XLA_FLAGS", "")

@@ -1,6 +1,6 @@
 """The input-output regression on accelerometers alone: the weak rows at the anchored
-states (:mod:`dtwin_jax.preprocess.weak_form_accelerometers`) and the widening of what the anchor's
-loop feeds back into itself (:func:`dtwin_jax.preprocess.accelerometers.state_feedback`)."""
+states (`dtwin_jax.preprocess.weak_form_accelerometers`) and the widening of what the anchor's
+loop feeds back into itself (`dtwin_jax.preprocess.accelerometers.state_feedback`)."""
 
 from __future__ import annotations
 
@@ -23,8 +23,19 @@ WIDENING_WARNING = 3.0
 
 
 def without_constant_columns(lib: Library, nominal: LinearSecondOrder, u) -> tuple[Library, list[str]]:
-    """``lib`` without its columns constant whatever the states (``1``), and their names: the
-    test functions of the accelerometers' weak form annihilate them. ``u (R, N, n)``."""
+    """The library without its columns that are constant whatever the states (`1`), and their names.
+
+    The test functions of the accelerometers' weak form annihilate a constant column, so it is
+    dropped rather than regressed.
+
+    **Arguments:**
+
+    - `lib`: the library.
+    - `nominal`: the nominal model (its number of states `m`).
+    - `u`: `(R, N, n)` measured inputs (the columns are probed at random states and these inputs).
+
+    **Returns:** `(lib, dropped)`: the library without the constant columns (`lib` itself when
+    there are none) and the dropped columns' names. Raises a `DataError` when no column is left."""
     R, N, _ = u.shape
     x = np.random.default_rng(0).standard_normal((1, min(N, 256), nominal.m))
     drop = constant_columns(lib, x, np.asarray(u)[:1, :x.shape[1]])
@@ -42,16 +53,20 @@ def accelerometer_regression(nominal: LinearSecondOrder, lib: Library, dt: float
 
     **Arguments:**
 
-    - ``nominal``, ``lib``: the nominal model and the (reduced) library.
-    - ``dt``: sample step, s.
-    - ``a``: ``(R, N, d)`` accelerations; ``u``: ``(R, N, n)`` inputs (zeros: output-only).
-    - ``x``: ``(R, N, m)`` the states of :func:`~dtwin_jax.preprocess.accelerometers.accelerometer_states`,
-      ``states_info`` its info (``error_draws`` and ``coefficients`` are taken out of it).
-    - ``loop_names``: the term names of the library the loop ran with.
-    - ``interpolation``: the inputs' (``"held"`` or ``"bandlimited"``).
-    **Returns:** ``(stats, info, feedback or None, warnings)``: the
-    :class:`~dtwin_jax.sampler.SuffStats` of the velocity equations, the weak form's
-    description, :func:`~dtwin_jax.preprocess.accelerometers.state_feedback`'s result, and warnings."""
+    - `nominal`: the nominal model.
+    - `lib`: the (reduced) library.
+    - `dt`: sample step, s.
+    - `a`: `(R, N, d)` measured accelerations.
+    - `u`: `(R, N, n)` inputs (zeros: output-only).
+    - `x`: `(R, N, m)` the states of `dtwin_jax.preprocess.accelerometers.accelerometer_states`.
+    - `states_info`: their info dict (`error_draws` and `coefficients` are popped from it).
+    - `loop_names`: the term names of the library the loop ran with.
+    - `interpolation`: the inputs' (`"held"` or `"bandlimited"`).
+
+    **Returns:** `(stats, info, feedback, warnings)`: the `dtwin_jax.sampler.SuffStats` of the
+    velocity equations, the weak form's description dict, the result of
+    `dtwin_jax.preprocess.accelerometers.state_feedback` (None without coefficients or error draws),
+    and a list of warning lines."""
     warnings = unsettled_warnings(states_info)
     draws, coef = states_info.pop("error_draws", None), states_info.pop("coefficients")
     if coef is not None:  # the loop's coefficients on the library as reduced since

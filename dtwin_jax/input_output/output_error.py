@@ -2,8 +2,8 @@
 
 The Gibbs posterior is an equation-error fit: rates regressed on denoised states, one sample
 at a time. A lightly damped twin's free run depends on its stiffness far more finely than a
-short window's equation error pins it down (example 3: the late-damage stiffness 1005 +- 3
-for a true 1000 puts a 10 s prediction 5% off). The free run itself carries that
+short window's equation error pins it down (example 3: a late-damage stiffness a fraction of a
+percent off puts a long prediction visibly off). The free run itself carries that
 information, as the phase it accumulates: here the selected terms' coefficients and the
 records' initial states are fitted so that the simulated twin matches the measured states
 (weighted least squares, Levenberg-Marquardt on the forward-mode Jacobian of the diffrax
@@ -35,19 +35,36 @@ __all__ = ["refine_output_error"]
 
 def refine_output_error(result, t, x, u, *, x_names=None, x0=None, noise_std=None, input_noise_std=None,
                         max_iter: int = 30, reweight: int = 2, input_draws: int = 64):
-    """The update ``result`` with its selected coefficients refined by output error.
+    """The update `result` with its selected coefficients refined by output error.
 
-    ``t (N,)`` s, ``x (N, p)`` or ``(R, N, p)`` the measured states ``x_names`` (default all),
-    ``u (N, n)`` or ``(R, N, n)`` the inputs: the data the twin was updated from, or any
-    other window. ``x0 (R, m)`` starting guesses of the initial states (default: the first
-    sample, which needs every state measured). ``noise_std (p,)`` the measurement noise of
-    each state, which weighs them (default: from the residuals, re-estimated ``reweight``
-    times). ``input_noise_std (n,)``: the measured input's noise (the update's
-    ``preprocessing["input_noise_std"]``), whose response through the twin widens the
-    covariance (``input_draws`` Monte Carlo draws). Returns a copy of ``result`` whose
-    ``refinement`` holds the refined posterior (:func:`dtwin_jax.models.prediction.posterior_twins`
-    and ``result.twin`` use it).
-    """
+    The selected terms' coefficients and the records' initial states are fitted so that the
+    twin's free run matches the measured states (see the module docstring); the selection
+    itself is kept.
+
+    **Arguments:**
+
+    - `result`: an `UpdateResult` of mode `"input-output"` with at least one discovered term.
+    - `t`: `(N,)` sample times, s: the data the twin was updated from, or any other window.
+    - `x`: `(N, p)` or `(R, N, p)` the measured states `x_names`.
+    - `u`: `(N, n)` or `(R, N, n)` the measured inputs.
+    - `x_names`: the states of the columns of `x`, or None (default: all `m` in order).
+    - `x0`: `(R, m)` starting guesses of the records' initial states, or None (default: the
+      first sample, which needs every state measured).
+    - `noise_std`: `(p,)` the measurement noise std of each state (the states' units), which
+      weighs them, or None (default: from the residuals, re-estimated `reweight` times).
+    - `input_noise_std`: `(n,)` the measured inputs' noise std (the update's
+      `preprocessing["input_noise_std"]`), whose response through the twin widens the
+      covariance, or None (no widening).
+    - `max_iter`: the most Levenberg-Marquardt iterations per fit.
+    - `reweight`: how many times the noise std is re-estimated from the residuals and the fit
+      repeated, when `noise_std` is None.
+    - `input_draws`: Monte Carlo draws of the input noise for its response.
+
+    **Returns:** a copy of `result` whose `refinement` dict holds the refined posterior (the
+    terms, their mean and covariance, the fitted initial states, the noise std; used by
+    `dtwin_jax.models.prediction.posterior_twins` and `result.twin`). Raises a `DataError` for a
+    twin that is not input-output or has no terms, for missing `x0` with some states measured,
+    and when the free run fails at the posterior mean."""
     if result.mode != "input-output":
         raise DataError("output-error refinement needs an input-output twin (its input is known)")
     nominal = result.nominal
@@ -110,9 +127,9 @@ def refine_output_error(result, t, x, u, *, x_names=None, x0=None, noise_std=Non
 
 
 def _residual_functions(twin, index, t, u, xm, x_index, R):
-    """Weighted residual ``(R N p,)`` of parameters ``[theta (P,), x0 (R m,)]`` and its
-    Jacobian, and the weighted measured-state response ``(S, R N p)`` to ``S`` input
-    perturbations ``du (S, R, N, n)``; all jitted."""
+    """Weighted residual `(R N p,)` of parameters `[theta (P,), x0 (R m,)]` and its
+    Jacobian, and the weighted measured-state response `(S, R N p)` to `S` input
+    perturbations `du (S, R, N, n)`; all jitted."""
     shape = np.asarray(twin.coefficients).shape
     P = index.size
     # A sign/Abs term chatters the adaptive solver (minutes, then out of steps): fixed steps.
@@ -137,7 +154,7 @@ def _residual_functions(twin, index, t, u, xm, x_index, R):
 
 
 def _cost(residual, params, scale) -> float:
-    """``|residual|^2``, inf where the free run fails (a trial step can make the twin
+    """`|residual|^2`, inf where the free run fails (a trial step can make the twin
     unstable or too stiff for the solver's step budget)."""
     try:
         r = residual(params, scale)
@@ -147,7 +164,7 @@ def _cost(residual, params, scale) -> float:
 
 
 def _levenberg_marquardt(residual, jacobian, params, scale, max_iter):
-    """Minimise ``|residual(params, scale)|^2`` from ``params``; returns (params, iterations)."""
+    """Minimise `|residual(params, scale)|^2` from `params`; returns (params, iterations)."""
     r = residual(params, scale)
     cost = float(r @ r)
     lam = 1e-3
@@ -178,13 +195,13 @@ def _slowest_period_samples(nominal, dt: float, N: int) -> int:
 
 
 def _sandwich_covariance(r, J, lags: int) -> np.ndarray:
-    """Laplace covariance robust to coloured residuals: ``H^-1 S H^-1`` with ``H = J^T J``
-    and ``S`` the Newey-West (Bartlett, ``lags``) long-run covariance of the per-sample
-    scores ``J_t^T r_t``. Residuals ``r (R, N, p)``, Jacobian ``J (R, N, p, P)``.
+    """Laplace covariance robust to coloured residuals: `H^-1 S H^-1` with `H = J^T J`
+    and `S` the Newey-West (Bartlett, `lags`) long-run covariance of the per-sample
+    scores `J_t^T r_t`. Residuals `r (R, N, p)`, Jacobian `J (R, N, p, P)`.
 
     The output residual holds white sensor noise and, through the twin, the response to
     the input's noise: coloured, small in variance but coherent with the parameters'
-    sensitivities, so ``s2 (J^T J)^-1`` made intervals several times too narrow on
+    sensitivities, so `s2 (J^T J)^-1` made intervals several times too narrow on
     random members (`benchmarks/refine.py`)."""
     norm, Hinv = _normalised_inverse(J.reshape(-1, J.shape[-1]))
     scores = np.einsum("rnpk,rnp->rnk", J, r) / norm  # (R, N, P)
@@ -196,15 +213,15 @@ def _sandwich_covariance(r, J, lags: int) -> np.ndarray:
 
 
 def _input_noise_covariance(J, d) -> np.ndarray:
-    """``H^-1 E[J^T d d^T J] H^-1``: the parameters' spread from input-noise responses
-    ``d (S, M)`` of the weighted residual, ``J (M, P)`` its Jacobian."""
+    """`H^-1 E[J^T d d^T J] H^-1`: the parameters' spread from input-noise responses
+    `d (S, M)` of the weighted residual, `J (M, P)` its Jacobian."""
     norm, Hinv = _normalised_inverse(J)
     scores = d @ (J / norm)  # (S, P)
     return Hinv @ (scores.T @ scores / d.shape[0]) @ Hinv / np.outer(norm, norm)
 
 
 def _normalised_inverse(J) -> tuple[np.ndarray, np.ndarray]:
-    """Column norms of ``J (M, P)`` and the inverse of the column-normalised ``J^T J``:
+    """Column norms of `J (M, P)` and the inverse of the column-normalised `J^T J`:
     coefficients and initial states differ in scale by many orders."""
     norm = np.linalg.norm(J, axis=0)
     norm = np.where(norm > 0, norm, 1.0)

@@ -1,8 +1,8 @@
 """Regression targets and their sufficient statistics.
 
 Framework 1 (input-output): the nominal model is removed from the measured rates (the paper's
-Eq. 14), ``y_i = xdot_i - f_i(x, u)`` for every regressed state ``i`` (velocities and extra
-states; the kinematic rows are exact), and each ``y_i`` is regressed on one library ``L(x, u)``.
+Eq. 14), `y_i = xdot_i - f_i(x, u)` for every regressed state `i` (velocities and extra
+states; the kinematic rows are exact), and each `y_i` is regressed on one library `L(x, u)`.
 """
 
 from __future__ import annotations
@@ -32,15 +32,31 @@ __all__ = [
 def input_output_targets(nominal: LinearSecondOrder, x, u, xdot) -> jax.Array:
     """Eq. 14: measured rates minus the nominal rates of the regressed states.
 
-    ``x (N, m)``, ``u (N, n)``, ``xdot (N, m)`` -> ``(N, len(nominal.regressed_index))``.
+    **Arguments:**
+
+    - `nominal`: the nominal model.
+    - `x`: `(N, m)` states (denoised or estimated).
+    - `u`: `(N, n)` inputs.
+    - `xdot`: `(N, m)` measured (or estimated) rates.
+
+    **Returns:** the targets `xdot - f(x, u)` of the regressed states, `(N, len(nominal.regressed_index))`,
+    in the rates' units.
     """
     idx = jnp.asarray(nominal.regressed_index)
     return (jnp.asarray(xdot) - nominal.rate_batch(jnp.asarray(x), jnp.asarray(u)))[:, idx]
 
 
 def equation_stats(L, Y) -> sampler.SuffStats:
-    """Sufficient statistics of every target column of ``Y (N, q)`` on one library ``L (N, K)``,
-    batched over the ``q`` equations."""
+    """Sufficient statistics of every target column on one library, batched over the equations.
+
+    **Arguments:**
+
+    - `L`: `(N, K)` the library's columns.
+    - `Y`: `(N, q)` the targets, one column per equation.
+
+    **Returns:** `sampler.SuffStats` batched over the `q` equations: `gram (q, K, K)`,
+    `xty (q, K)`, `yty (q,)` and `n (q,)` (the number of rows `N`).
+    """
     L = jnp.asarray(L)
     Y = jnp.asarray(Y)
     gram = L.T @ L
@@ -55,10 +71,19 @@ def equation_stats(L, Y) -> sampler.SuffStats:
 def correct_input_noise(stats: sampler.SuffStats, lib: Library, nominal: LinearSecondOrder, noise_var) -> sampler.SuffStats:
     """Remove the input noise's contribution to the statistics (errors in variables).
 
-    The noise ``n`` on ``u_j`` sits in the library column ``u_j`` (adding ``N var_j`` to its
-    squared norm) and, through the removed nominal ``M^-1 B u``, in every velocity target with
-    the opposite sign (adding ``-N (M^-1 B)_ij var_j`` to ``L^T y``). Unremoved, it shows up as
-    a spurious ``u_j`` term at high noise. ``noise_var (n,)`` may be traced.
+    The noise `n` on `u_j` sits in the library column `u_j` (adding `N var_j` to its
+    squared norm) and, through the removed nominal `M^-1 B u`, in every velocity target with
+    the opposite sign (adding `-N (M^-1 B)_ij var_j` to `L^T y`). Unremoved, it shows up as
+    a spurious `u_j` term at high noise.
+
+    **Arguments:**
+
+    - `stats`: `sampler.SuffStats` batched over the regressed equations.
+    - `lib`: the library (only its input columns, named as the nominal's inputs, are corrected).
+    - `nominal`: the nominal model (`M`, `B`, the input names and the regressed states).
+    - `noise_var`: `(n,)` variance of the noise on each input (input units squared); may be traced.
+
+    **Returns:** the corrected `sampler.SuffStats` (`gram` and `xty` changed).
     """
     gain = mass_solve(nominal.M, nominal.B)  # (d, n)
     noise_var = jnp.asarray(noise_var)
@@ -82,14 +107,25 @@ def smoothed_input_output_stats(
 ) -> tuple[sampler.SuffStats, jax.Array | None]:
     """Statistics of every regressed equation from denoised states, pooled over records.
 
-    ``xs (R, N, m)`` denoised states, ``u (R, N, n)`` measured inputs, ``xdot (R, N, m)``
-    measured (or estimated) rates; ``half_width`` (static) of the noise filters. With
-    ``correct_inputs`` (and an ``input`` family in ``lib``) the input noise is estimated
-    (:func:`denoise.input_noise_variance`) and removed. Returns ``(SuffStats batched over
-    equations, input noise variance (n,) or None)``. ``keep (R, N)`` bool: only those rows
-    enter the statistics (the input noise is still estimated from whole records); a mask, not
-    a subset, so one compiled program serves every count. Jitted (``half_width`` and
-    ``correct_inputs`` static; ``lib`` holds no arrays).
+    With `correct_inputs` (and an `input` family in `lib`) the input noise is estimated
+    (`denoise.input_noise_variance`) and removed (`correct_input_noise`). Jitted
+    (`half_width` and `correct_inputs` static; `lib` holds no arrays).
+
+    **Arguments:**
+
+    - `nominal`: the nominal model.
+    - `lib`: the library.
+    - `xs`: `(R, N, m)` denoised states.
+    - `u`: `(R, N, n)` measured inputs.
+    - `xdot`: `(R, N, m)` measured (or estimated) rates.
+    - `half_width`: half width of the noise filters, samples (static).
+    - `correct_inputs`: estimate and remove the input noise.
+    - `keep`: `(R, N)` bool, only those rows enter the statistics (the input noise is still
+      estimated from whole records), or None (every row); a mask, not a subset, so one
+      compiled program serves every count.
+
+    **Returns:** `(stats, noise_var)`: `sampler.SuffStats` batched over the regressed
+    equations, and the input noise variance `(n,)`, or None when not corrected.
     """
     xs, u, xdot = (jnp.asarray(a) for a in (xs, u, xdot))
     m, n = xs.shape[-1], u.shape[-1]
@@ -112,13 +148,23 @@ def smoothed_input_output_stats(
 def input_output_stats(
     nominal: LinearSecondOrder, lib: Library, dt: float, x, u, xdot, half_width: int
 ) -> sampler.SuffStats:
-    """The whole framework-1 chain for measured records: kinematic RTS smoothing of the
-    states, targets (Eq. 14), library, statistics and the input-noise correction.
+    """The whole framework-1 chain for measured records, from the raw states to the statistics.
 
-    ``x (N, m)`` or ``(R, N, m)`` measured states, ``u`` inputs ``(.., N, n)``, ``xdot``
-    measured rates like ``x``; ``dt`` s and ``half_width`` (static, see
-    :func:`denoise.auto_half_width`). Records are smoothed one by one and pooled. Returns
-    ``SuffStats`` batched over the regressed equations. Jitted, vmappable over data.
+    Kinematic RTS smoothing of the states (records smoothed one by one and pooled), targets
+    (Eq. 14), library, statistics and the input-noise correction. Jitted (`dt` and
+    `half_width` static), vmappable over data.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model.
+    - `lib`: the library.
+    - `dt`: sample step, s (static).
+    - `x`: `(N, m)` or `(R, N, m)` measured states.
+    - `u`: `(N, n)` or `(R, N, n)` measured inputs.
+    - `xdot`: measured rates, shaped like `x`.
+    - `half_width`: half width of the noise filters, samples (static, see `denoise.auto_half_width`).
+
+    **Returns:** `sampler.SuffStats` batched over the regressed equations.
     """
     x, u, xdot = (jnp.asarray(a) for a in (x, u, xdot))
     if x.ndim == 2:

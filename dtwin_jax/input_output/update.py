@@ -1,8 +1,8 @@
-"""Framework 1 (input-output, the paper's Section 4.1): measured states ``x``, inputs ``u``
-and rates ``xdot`` (or rates estimated from ``x``). The states are denoised (the kinematic
+"""Framework 1 (input-output, the paper's Section 4.1): measured states `x`, inputs `u`
+and rates `xdot` (or rates estimated from `x`). The states are denoised (the kinematic
 RTS smoother with measured rates, else Savitzky-Golay) or, with some states unmeasured,
-estimated with their rates by the state-space smoother of :mod:`dtwin_jax.preprocess.estimate`; the
-nominal rates are removed to give the targets ``xdot - f(x, u)``, whose statistics on the
+estimated with their rates by the state-space smoother of `dtwin_jax.preprocess.estimate`; the
+nominal rates are removed to give the targets `xdot - f(x, u)`, whose statistics on the
 library go to the sampler, every regressed equation in one vmapped call."""
 
 from __future__ import annotations
@@ -94,54 +94,56 @@ def update_input_output(
     refine: bool = False,
     reference=None,
 ) -> UpdateResult:
-    """Discover the perturbation of ``nominal`` from input-output measurements.
+    """Discover the perturbation of `nominal` from input-output measurements.
 
     The route follows the sensors: with every state measured and no rates, the weak form
-    (:mod:`dtwin_jax.preprocess.weak_form`: nothing differentiated); with rates measured, the kinematic
+    (`dtwin_jax.preprocess.weak_form`: nothing differentiated); with rates measured, the kinematic
     smoother; with accelerometers alone, the anchored states and their weak form
-    (:mod:`dtwin_jax.preprocess.accelerometers`); with some states unmeasured, or a few samples per
-    period, the state-space smoother of :mod:`dtwin_jax.preprocess.estimate`. The layout and route are
-    named in ``preprocessing["layout"]`` and ``["smoothing"]``.
+    (`dtwin_jax.preprocess.accelerometers`); with some states unmeasured, or a few samples per
+    period, the state-space smoother of `dtwin_jax.preprocess.estimate`. The layout and route are
+    named in `preprocessing["layout"]` and `["smoothing"]`.
 
     **Arguments:**
 
-    - ``nominal``: the nominal model :class:`~dtwin_jax.models.systems.LinearSecondOrder`.
-    - ``t``: ``(N,)`` sample times, s, uniform.
-    - ``x``: ``(N, p)`` or ``(R, N, p)`` measured states (``R`` records), or None with
-      ``xdot`` (accelerometers alone).
-    - ``u``: ``(N, n)`` or ``(R, N, n)`` measured inputs (force units through ``B``).
-    - ``xdot``: measured rates of the states ``xdot_names`` (accelerometers: the rates of the
-      velocity states), same shapes as ``x``, or None.
-    - ``x_names``, ``xdot_names``: the states of the columns of ``x`` and ``xdot``, like
-      ``["x1"]`` (default: all ``m`` in order).
-    - ``interpolation``: the input between samples, ``"held"``, ``"linear"``,
-      ``"bandlimited"``, or ``"auto"`` (chosen from its spectrum by
-      :func:`dtwin_jax.models.systems.choose_interpolation`; reported as
-      ``preprocessing["input_interpolation"]`` and ``["input_interpolation_chosen_by"]``).
-    - ``library``: a spec (formats.md, like ``"poly:3,sign,input"``) or a :class:`Library`;
+    - `nominal`: the nominal model `dtwin_jax.models.systems.LinearSecondOrder`.
+    - `t`: `(N,)` sample times, s, uniform.
+    - `x`: `(N, p)` or `(R, N, p)` measured states (`R` records), or None with
+      `xdot` (accelerometers alone).
+    - `u`: `(N, n)` or `(R, N, n)` measured inputs (force units through `B`).
+    - `xdot`: measured rates of the states `xdot_names` (accelerometers: the rates of the
+      velocity states), same shapes as `x`, or None.
+    - `x_names`: the states of the columns of `x`, like `["x1"]`, or None (default: all `m`
+      in order).
+    - `xdot_names`: the states whose rates are the columns of `xdot`, like `["x2"]`, or None
+      (default: all `m` in order).
+    - `interpolation`: the input between samples, `"held"`, `"linear"`,
+      `"bandlimited"`, or `"auto"` (chosen from its spectrum by
+      `dtwin_jax.models.systems.choose_interpolation`; reported as
+      `preprocessing["input_interpolation"]` and `["input_interpolation_chosen_by"]`).
+    - `library`: a spec (formats.md, like `"poly:3,sign,input"`) or a `Library`;
       None: the default library, adapted to the data (columns the data cannot tell apart
       dropped, with a warning).
-    - ``smoothing``: ``"auto"`` (the route above), ``"weak"``, ``"savgol"``,
-      ``"statespace"``, None (the states as measured) or an int Savitzky-Golay half width.
-    - ``pip_threshold``: inclusion probability above which a term is selected.
-    - ``settings``: :class:`SamplerSettings` (chains, draws, burn-in).
-    - ``seed``: the sampler's seed.
-    - ``progress``: show the stages and a bar of the sweeps.
-    - ``previous``: an earlier update of the same twin (same nominal model and library),
-      whose statistics, times ``forget``, are added to this window's: its posterior is the
+    - `smoothing`: `"auto"` (the route above), `"weak"`, `"savgol"`,
+      `"statespace"`, None (the states as measured) or an int Savitzky-Golay half width.
+    - `pip_threshold`: inclusion probability above which a term is selected.
+    - `settings`: `SamplerSettings` (chains, draws, burn-in).
+    - `seed`: the sampler's seed.
+    - `progress`: show the stages and a bar of the sweeps.
+    - `previous`: an earlier update of the same twin (same nominal model and library),
+      whose statistics, times `forget`, are added to this window's: its posterior is the
       prior; the history continues it.
-    - ``forget``: the previous statistics' weight, in (0, 1].
-    - ``allow_repeat``: take a window already in the history (its data would count twice).
-    - ``refine``: refine the selected terms' coefficients by output error on the same data
-      (:func:`dtwin_jax.update.refine_output_error`): a sharper twin for long free runs.
-    - ``reference``: ``(N,)``, ``(N, r)`` or ``(R, N, r)`` the set-point of a closed loop, or
+    - `forget`: the previous statistics' weight, in (0, 1].
+    - `allow_repeat`: take a window already in the history (its data would count twice).
+    - `refine`: refine the selected terms' coefficients by output error on the same data
+      (`dtwin_jax.update.refine_output_error`): a sharper twin for long free runs.
+    - `reference`: `(N,)`, `(N, r)` or `(R, N, r)` the set-point of a closed loop, or
       None. The estimator assumes the equation error white and independent of the columns;
       under feedback an unmeasured force reaches the input and that fails. Given, the
-      reference is the instrument of a two-stage least squares (:mod:`dtwin_jax.preprocess.instruments`;
+      reference is the instrument of a two-stage least squares (`dtwin_jax.preprocess.instruments`;
       the weak form's route only).
 
-    **Returns:** an :class:`UpdateResult` of mode ``"input-output"``: one drift equation per
-    regressed state, coefficients in acceleration units (``M^-1`` applied), with the
+    **Returns:** an `UpdateResult` of mode `"input-output"`: one drift equation per
+    regressed state, coefficients in acceleration units (`M^-1` applied), with the
     preprocessing, checks and statistics of the update.
     """
     start = time.perf_counter()
@@ -316,11 +318,11 @@ _JUMP_SIGMAS = 3.0
 
 
 def _clear_of_jumps(lib, nominal, xs, x, x_index):
-    """``(R, N)`` True where every velocity that enters a ``sign`` term of ``lib`` is at least
-    ``_JUMP_SIGMAS`` noise standard deviations from 0, or None (no such term, or no measured
-    velocity to size its noise). Near a reversal the denoised velocity's sign is a coin flip
-    (0.7-0.8% of the samples at 2% noise), and those rows alone made ``x2 + x2**3`` beat
-    ``x2*Abs(x2)`` with the friction 10% low (benchmarks/ambiguity.py)."""
+    """`(R, N)` True where every velocity that enters a `sign` term of `lib` is at least
+    `_JUMP_SIGMAS` noise standard deviations from 0, or None (no such term, or no measured
+    velocity to size its noise). Near a reversal the denoised velocity's sign is a coin flip,
+    and those rows alone made `x2 + x2**3` beat `x2*Abs(x2)` with the friction low
+    (`benchmarks/ambiguity.py`)."""
     names = nominal.state_names
     joined = " ".join(lib.names)
     velocities = [v for v in nominal.velocity_index if f"sign({names[v]})" in joined and v in x_index]
@@ -349,7 +351,7 @@ def _layout_name(nominal, x_index, xdot_index) -> str:
 
 def _with_model_error(result: UpdateResult, rec, x_index, xs) -> UpdateResult:
     """The result with the twin's free-run error on its training data
-    (``preprocessing["model_error_sd"]``, :mod:`dtwin_jax.model_error`), which predictions
+    (`preprocessing["model_error_sd"]`, `dtwin_jax.model_error`), which predictions
     add to their band; a warning instead when that free run fails."""
     if not x_index:  # nothing measured to compare a free run with (accelerometers alone)
         return result
@@ -365,7 +367,7 @@ def _with_model_error(result: UpdateResult, rec, x_index, xs) -> UpdateResult:
 
 
 def _states_and_rates(rec, nominal, smoothing, partial, x_index, xdot_index, interpolation, hw):
-    """Denoised or estimated states ``(R, N, m)`` and their rates, a description of the
+    """Denoised or estimated states `(R, N, m)` and their rates, a description of the
     smoothing, where the rates came from, and whether the input-noise correction applies."""
     if smoothing == "weak" and partial:  # residual checks on Savitzky-Golay derivatives of the displacements
         xs, rates = _savgol_from_displacements(rec, nominal, x_index, hw)
@@ -388,7 +390,7 @@ def _states_and_rates(rec, nominal, smoothing, partial, x_index, xdot_index, int
 
 
 def _savgol_from_displacements(rec, nominal, x_index, hw) -> tuple[np.ndarray, np.ndarray]:
-    """States ``(R, N, m)`` and rates with every unmeasured velocity the Savitzky-Golay
+    """States `(R, N, m)` and rates with every unmeasured velocity the Savitzky-Golay
     derivative of its displacement (the weak form's layouts: displacements measured)."""
     R, N, _ = rec.x.shape
     xs, rates = np.zeros((R, N, nominal.m)), np.zeros((R, N, nominal.m))
@@ -405,9 +407,17 @@ def _savgol_from_displacements(rec, nominal, x_index, hw) -> tuple[np.ndarray, n
 def denoise_states(records: Records, nominal: LinearSecondOrder, smoothing="auto") -> tuple:
     """Denoise the measured states before they enter the library and the nominal rates.
 
-    ``smoothing``: ``"auto"`` (the kinematic RTS smoother when rates are measured, else a
-    Savitzky-Golay filter matched to the sampling rate), ``"savgol"``, an int Savitzky-Golay
-    half width, or None (raw states). Returns ``(x (R, N, m), description dict or None)``.
+    **Arguments:**
+
+    - `records`: the checked `Records` (`x (R, N, m)`, the rates `xdot` or None, the inputs
+      `u` or None, `dt` s).
+    - `nominal`: the nominal model (it sets the filters' width, `auto_half_width`).
+    - `smoothing`: `"auto"` (the kinematic RTS smoother when rates are measured, else a
+      Savitzky-Golay filter matched to the sampling rate), `"savgol"`, an int Savitzky-Golay
+      half width (samples), or None (raw states).
+
+    **Returns:** `(x, info)`: the denoised states `(R, N, m)` and a dict describing the
+    smoothing, or None for raw states.
     """
     if smoothing is None:
         return records.x, None
@@ -430,8 +440,8 @@ def _autocorrelation_corrected(stats, nominal, lib, xs, u, rates) -> tuple[sampl
     A smoother's rate estimates are smooth in time, so the regression residuals (model
     mismatch, estimation error) are autocorrelated, and counting every sample as independent
     makes the posterior too narrow and every small systematic term "certain" (on the
-    Silverbox: 0.8% posterior std of the cubic stiffness where windows differ by 4%, and
-    velocity cross-terms at PIP 1). The residuals of a least-squares fit on the whole
+    Silverbox: a posterior std of the cubic stiffness far below the spread between windows,
+    and velocity cross-terms at PIP 1). The residuals of a least-squares fit on the whole
     library give the effective size (arviz's ESS, summed over records); scaling the
     statistics by `n_eff / n` keeps their estimates and widens the posterior to match."""
     import arviz_stats as az
@@ -449,7 +459,7 @@ def _autocorrelation_corrected(stats, nominal, lib, xs, u, rates) -> tuple[sampl
 
 
 def _input_output_residuals(nominal, lib, xs, u, rates, coef) -> np.ndarray:
-    """Residuals ``(q, R, N)`` of every regressed equation under coefficients ``coef (q, K)``."""
+    """Residuals `(q, R, N)` of every regressed equation under coefficients `coef (q, K)`."""
     R, N, m = xs.shape
     x, uu = jnp.asarray(np.reshape(xs, (R * N, m))), jnp.asarray(np.reshape(u, (R * N, -1)))
     Y = np.asarray(input_output_targets(nominal, x, uu, jnp.asarray(np.reshape(rates, (R * N, m)))))

@@ -1,6 +1,6 @@
 """Files of formats.md: measurement files (.npz, .csv), nominal models (.toml), results (.json).
 
-Every reader raises a one-line :class:`DataError` naming the problem; writers write to a
+Every reader raises a one-line `DataError` naming the problem; writers write to a
 temporary file and rename it, so a failed run leaves nothing half-written.
 """
 
@@ -28,7 +28,17 @@ __all__ = ["load_nominal", "load_measurements", "load_prediction_input", "write_
 
 
 def load_nominal(path) -> LinearSecondOrder:
-    """Read ``M``, ``C``, ``K`` (d x d), optional ``B`` (d x n), ``extra_states`` and ``F0`` (d)."""
+    """Read a nominal model file (`.toml`).
+
+    The file holds `M`, `C`, `K` (d x d), optional `B` (d x n), `extra_states` and `F0` (d);
+    a missing key, a non-numeric entry or a wrong shape raises a one-line `DataError`.
+
+    **Arguments:**
+
+    - `path`: the `.toml` file.
+
+    **Returns:** the nominal model, a `LinearSecondOrder`.
+    """
     path = Path(path)
     try:
         with path.open("rb") as f:
@@ -76,8 +86,8 @@ def load_nominal(path) -> LinearSecondOrder:
 
 
 def _check_toml_numbers(path: Path, key: str, value) -> None:
-    """Refuse TOML values a float conversion would accept silently: booleans (``true`` reads
-    as 1.0) and numeric strings (``"1.0"``), anywhere in a nested array."""
+    """Refuse TOML values a float conversion would accept silently: booleans (`true` reads
+    as 1.0) and numeric strings (`"1.0"`), anywhere in a nested array."""
     if isinstance(value, list):
         for v in value:
             _check_toml_numbers(path, key, v)
@@ -87,7 +97,13 @@ def _check_toml_numbers(path: Path, key: str, value) -> None:
 
 
 def write_nominal(path, nominal: LinearSecondOrder) -> None:
-    """Write a nominal model as the TOML of formats.md."""
+    """Write a nominal model as the TOML of formats.md, atomically.
+
+    **Arguments:**
+
+    - `path`: the `.toml` file to write (replaced if it exists).
+    - `nominal`: the `LinearSecondOrder` to write.
+    """
 
     def mat(a):
         return "[" + ", ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in np.asarray(a)) + "]"
@@ -102,15 +118,26 @@ def write_nominal(path, nominal: LinearSecondOrder) -> None:
 
 
 def load_measurements(path) -> dict:
-    """Read ``t``, ``x`` and optional ``u``, ``xdot``, ``x_names``, ``xdot_names`` and
-    ``u_interpolation`` (absent: chosen from the input's spectrum) from ``.npz`` or ``.csv``.
-    ``x`` may be absent when ``xdot`` is present (accelerometers alone). An extension of
-    formats.md: ``reference`` (``.npz``, ``(N, r)`` or ``(R, N, r)``), a closed loop's
-    set-point, the instrument of :mod:`dtwin_jax.preprocess.instruments`.
+    """Read a measurement file (`.npz` or `.csv`).
 
-    A CSV file holds one record with header ``t,`` then measured state names (all of
-    ``x1..xm`` or a subset, which become ``x_names``) ``[,u1..un]``; columns ``xdot1..``
-    (all or a subset, which become ``xdot_names``) carry measured rates.
+    The file holds `t`, `x` and optional `u`, `xdot`, `x_names`, `xdot_names` and
+    `u_interpolation` (absent: chosen from the input's spectrum). `x` may be absent when
+    `xdot` is present (accelerometers alone). An extension of formats.md: `reference`
+    (`.npz`, `(N, r)` or `(R, N, r)`), a closed loop's set-point, the instrument of
+    `dtwin_jax.preprocess.instruments`.
+
+    A CSV file holds one record with header `t,` then measured state names (all of
+    `x1..xm` or a subset, which become `x_names`) `[,u1..un]`; columns `xdot1..`
+    (all or a subset, which become `xdot_names`) carry measured rates.
+
+    **Arguments:**
+
+    - `path`: the `.npz` or `.csv` file.
+
+    **Returns:** a dict of the keys present: `t (N,)` (s), `x (N, p)` or `(R, N, p)`, `u`,
+    `xdot`, `reference` (real arrays, shapes as in the file), `x_names` and `xdot_names`
+    (lists of state names) and `u_interpolation` (a string). The arrays are not yet checked
+    for shape or sampling (`dtwin_jax.data.check_records` does that).
     """
     path = Path(path)
     if not path.exists():
@@ -149,7 +176,7 @@ def load_measurements(path) -> dict:
 
 
 def _read_npz(path: Path, what: str) -> dict:
-    """Every array of an ``.npz`` (no pickles), after the sizes its headers declare are
+    """Every array of an `.npz` (no pickles), after the sizes its headers declare are
     checked against the memory available: a small file can declare a huge array."""
     unreadable = (OSError, ValueError, EOFError, zipfile.BadZipFile)
     try:
@@ -173,8 +200,20 @@ def _read_npz(path: Path, what: str) -> dict:
 
 
 def load_prediction_input(path, nominal: LinearSecondOrder, *, needs_input: bool) -> dict:
-    """Read ``NEW.npz`` of ``dtwin-jax predict``: ``t (N,)`` increasing, ``x0 (m,)``, and
-    ``u (N, n)`` when ``needs_input`` (an input-output twin). Returns float arrays."""
+    """Read `NEW.npz` of `dtwin-jax predict`: the times, initial state and inputs to predict from.
+
+    The file holds `t (N,)` increasing (s), `x0 (m,)`, and `u (N, n)` when `needs_input`;
+    a `u` of shape `(N,)` is read as one input.
+
+    **Arguments:**
+
+    - `path`: the `.npz` file.
+    - `nominal`: the twin's nominal model, which gives `m` and `n`.
+    - `needs_input`: whether `u` is required (an input-output twin); otherwise it is ignored.
+
+    **Returns:** a dict of float arrays: `t (N,)`, `x0 (m,)` and, when `needs_input`,
+    `u (N, n)`.
+    """
     path = Path(path)
     if not path.exists():
         raise DataError(f"input file '{path}' does not exist")
@@ -256,7 +295,7 @@ def _read_csv(path: Path) -> dict:
 
 
 def _numbered(header, prefix):
-    """``prefix1, prefix2, ...`` in order; a gap is an error."""
+    """`prefix1, prefix2, ...` in order; a gap is an error."""
     found = sorted(
         (int(h[len(prefix):]), h) for h in header
         if h.startswith(prefix) and h[len(prefix):].isdigit()
@@ -268,10 +307,10 @@ def _numbered(header, prefix):
 
 
 class atomic_path:
-    """Context manager yielding a temporary path that replaces ``path`` on success only.
+    """Context manager yielding a temporary path that replaces `path` on success only.
 
-    The file gets the mode ``open`` would give it (``0o666`` less the umask): ``mkstemp``
-    creates it ``0o600``, which would hide results from the user's group."""
+    The file gets the mode `open` would give it (`0o666` less the umask): `mkstemp`
+    creates it `0o600`, which would hide results from the user's group."""
 
     def __init__(self, path):
         self.path = Path(path)
@@ -292,8 +331,17 @@ class atomic_path:
 
 
 def json_safe(obj):
-    """``obj`` with every non-finite float replaced by None: JSON has no NaN or Infinity,
-    and strict parsers reject the bare tokens Python writes for them."""
+    """A copy of `obj` with every non-finite float replaced by None.
+
+    JSON has no NaN or Infinity, and strict parsers reject the bare tokens Python writes for
+    them.
+
+    **Arguments:**
+
+    - `obj`: a JSON-ready object: dicts, lists, tuples and scalars, nested.
+
+    **Returns:** the same structure (tuples become lists) with non-finite floats as None.
+    """
     if isinstance(obj, dict):
         return {k: json_safe(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
@@ -304,7 +352,13 @@ def json_safe(obj):
 
 
 def write_json(path, obj) -> None:
-    """Write ``obj`` as strict JSON (non-finite numbers as null), atomically."""
+    """Write `obj` as strict JSON (non-finite numbers as null), atomically.
+
+    **Arguments:**
+
+    - `path`: the `.json` file to write (replaced if it exists).
+    - `obj`: a JSON-ready object (see `json_safe`).
+    """
     text = json.dumps(json_safe(obj), indent=2, allow_nan=False)
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text + "\n")

@@ -1,49 +1,49 @@
 """A twin on disk: save, load, re-update (formats.md, "Saving a twin and predicting with it").
 
-A twin folder ``TWIN_DIR`` holds, format version 2:
+A twin folder `TWIN_DIR` holds, format version 2:
 
-* ``twin.json``: the manifest and pointer, ``{"format": "dtwin-jax twin", "version": 2,
-  "revision": 3, "current": "v000003", "files": {"header.json": "<sha256>", ...}}``;
-* ``v000003/``: the content of that revision, never changed once written:
+* `twin.json`: the manifest and pointer, `{"format": "dtwin-jax twin", "version": 2,
+  "revision": 3, "current": "v000003", "files": {"header.json": "<sha256>", ...}}`;
+* `v000003/`: the content of that revision, never changed once written:
 
-  * ``header.json``: ``format``, ``version``, ``mode``, state and input names, the library
+  * `header.json`: `format`, `version`, `mode`, state and input names, the library
     specs, each equation's state, kind and term names, sampler settings, PIP threshold,
-    preprocessing, checks, the ``history`` of updates (time, data size, prior, discovered
+    preprocessing, checks, the `history` of updates (time, data size, prior, discovered
     equations, the window's fingerprint, package version) and the output-error
-    ``refinement`` (or null);
-  * ``nominal.toml``: the nominal model (the nominal file of formats.md);
-  * ``posterior.nc``: every equation's draws as an arviz DataTree (netCDF, group
-    ``posterior``: ``theta_<state>_<kind>``, ``gamma_...``, ``sigma2_...``);
-  * ``statistics.npz``: the sufficient statistics the sampler saw (``<kind>_gram``,
-    ``_xty``, ``_yty``, ``_n``), so that a re-update can use the posterior as its prior;
-    a monitored twin (:mod:`dtwin_jax.monitor`) also its last windows' statistics and its
-    drift statistics before each and their score spreads (``recent_windows_*``,
-    ``recent_twins_*``, ``recent_spreads_*``, a leading axis of 1-4); an update from
-    accelerometers alone its window's score spread (``drift_spread_*``);
-  * ``result.json``: the result file of formats.md for the last update;
+    `refinement` (or null);
+  * `nominal.toml`: the nominal model (the nominal file of formats.md);
+  * `posterior.nc`: every equation's draws as an arviz DataTree (netCDF, group
+    `posterior`: `theta_<state>_<kind>`, `gamma_...`, `sigma2_...`);
+  * `statistics.npz`: the sufficient statistics the sampler saw (`<kind>_gram`,
+    `_xty`, `_yty`, `_n`), so that a re-update can use the posterior as its prior;
+    a monitored twin (`dtwin_jax.monitor`) also its last windows' statistics and its
+    drift statistics before each and their score spreads (`recent_windows_*`,
+    `recent_twins_*`, `recent_spreads_*`, a leading axis of 1-4); an update from
+    accelerometers alone its window's score spread (`drift_spread_*`);
+  * `result.json`: the result file of formats.md for the last update;
 
-* ``.lock``: the lock file (never deleted).
+* `.lock`: the lock file (never deleted).
 
 Guarantees (a twin travels between users and is untrusted):
 
 * Atomic: a save writes a new version folder in full (files synced), renames it into place,
-  replaces ``twin.json`` (``os.replace``), then removes the previous version. At every
+  replaces `twin.json` (`os.replace`), then removes the previous version. At every
   instant the twin loads, with the old history or the new; leftovers of a killed save are
   removed by the next save.
 * Nothing it did not write is deleted: only our file names are removed and a folder only
   when that leaves it empty; a folder that is neither empty nor a twin is refused, and a
   save over a twin must continue its history (or be asked to replace it).
-* Locked: :func:`locked` holds ``fcntl.flock`` on ``.lock``; :func:`save_twin` takes it,
+* Locked: `locked` holds `fcntl.flock` on `.lock`; `save_twin` takes it,
   and the command line holds it through read, update and write, so concurrent updates
   queue instead of losing one.
-* Checksummed and checked: :func:`load_twin` verifies every file's SHA-256 against the
-  manifest, then reads it defensively (:mod:`dtwin_jax.io.twin_files`: no netCDF reader, no
+* Checksummed and checked: `load_twin` verifies every file's SHA-256 against the
+  manifest, then reads it defensively (`dtwin_jax.io.twin_files`: no netCDF reader, no
   pickles, every field, shape and dtype checked); any failure is one line naming the file.
-  (:mod:`dtwin_jax.io.twin_folder` holds the lock, the names a save may remove and the
+  (`dtwin_jax.io.twin_folder` holds the lock, the names a save may remove and the
   destination check.)
 * Files get the user's umask (0644 and 0755 under umask 022).
 
-Version 1 (``twin.json`` the header, the other files beside it) is still read; the next
+Version 1 (`twin.json` the header, the other files beside it) is still read; the next
 save migrates it, removing only the five file names version 1 wrote.
 """
 
@@ -76,26 +76,35 @@ _AFTER_STEP = None
 
 
 def twin_revision(path) -> int:
-    """The revision of the twin at ``path`` (0 for a version-1 twin); :func:`load_twin`
-    records it on its result as ``twin_revision``."""
+    """The revision of the twin at `path`; `load_twin` records it on its result as `twin_revision`.
+
+    **Arguments:**
+
+    - `path`: the twin folder.
+
+    **Returns:** the revision, an int: 0 for a version-1 twin (or a `twin.json` that is not
+    a JSON object).
+    """
     head = twin_folder.read_json(Path(path) / "twin.json")
     return int(head.get("revision", 0)) if isinstance(head, dict) else 0
 
 
 def save_twin(result, path, *, expect_revision: int | None = None, replace: bool = False) -> Path:
-    """Write the :class:`~dtwin_jax.update.UpdateResult` ``result`` as the twin folder ``path``.
+    """Write the `update.UpdateResult` `result` as the twin folder `path`.
 
     **Arguments:**
 
-    - ``result``: the update to save.
-    - ``path``: absent, an empty folder, or a twin. A twin is updated only if ``result``
+    - `result`: the update to save.
+    - `path`: absent, an empty folder, or a twin. A twin is updated only if `result`
       continues its history (a re-update of it, or the same twin), so an update saved
-      meanwhile by someone else is never silently lost; ``replace=True`` replaces any twin.
-      Files that are not the twin's are left alone.
-    - ``expect_revision``: refuse unless the twin at ``path`` is still at this revision (the
-      ``twin_revision`` of the result :func:`load_twin` returned).
+      meanwhile by someone else is never silently lost. Files that are not the twin's are
+      left alone.
+    - `expect_revision`: refuse unless the twin at `path` is still at this revision (the
+      `twin_revision` of the result `load_twin` returned); None (default) checks no revision.
+    - `replace`: replace any twin at `path`, its history discarded, even one `result` does
+      not continue or one whose manifest is damaged (default False).
 
-    **Returns:** ``Path(path)``. Raises a one-line :class:`DataError`.
+    **Returns:** `Path(path)`. Raises a one-line `DataError`.
     """
     path = Path(path)
     lib = result.library
@@ -146,12 +155,12 @@ def _step(name: str) -> None:
 
 
 def _normal(history) -> list:
-    """``history`` as it reads back from JSON, for comparison."""
+    """`history` as it reads back from JSON, for comparison."""
     return json.loads(json.dumps(json_safe(list(history))))
 
 
 def _write_content(folder: Path, result, mode: int) -> dict:
-    """Write the five content files into ``folder``, synced, mode ``mode``; their SHA-256."""
+    """Write the five content files into `folder`, synced, mode `mode`; their SHA-256."""
     _write_text(folder / "header.json", json.dumps(json_safe(_header(result)), indent=2, allow_nan=False) + "\n")
     write_nominal(folder / "nominal.toml", result.nominal)
     result.to_arviz().to_netcdf(folder / "posterior.nc", engine="h5netcdf")
@@ -175,7 +184,7 @@ def _write_text(path: Path, text: str) -> None:
 
 
 def _current(path: Path, replace: bool):
-    """``(version, revision, current folder name)`` of the twin at ``path``, ``(0, 0, None)``
+    """`(version, revision, current folder name)` of the twin at `path`, `(0, 0, None)`
     when it holds none; a damaged manifest counts as none when it is to be replaced."""
     if not os.path.lexists(path / "twin.json"):
         return 0, 0, None
@@ -239,7 +248,7 @@ def _header(result) -> dict:
 
 
 def _read_files(path: Path):
-    """``(version, revision, folder, {name: bytes})`` of the twin at ``path``, checksums
+    """`(version, revision, folder, {name: bytes})` of the twin at `path`, checksums
     verified. Retried when a save replaces the twin while it is read (no lock needed)."""
     pointer = path / "twin.json"
     for _ in range(_LOAD_TRIES):
@@ -273,16 +282,16 @@ def _read_files(path: Path):
 
 
 def load_twin(path):
-    """Read a twin folder written by :func:`save_twin` (format version 1 or 2), checking
+    """Read a twin folder written by `save_twin` (format version 1 or 2), checking
     every file (checksums, fields, shapes, dtypes) before use.
 
     **Arguments:**
 
-    - ``path``: the twin folder.
+    - `path`: the twin folder.
 
-    **Returns:** an :class:`~dtwin_jax.update.UpdateResult` whose twin predicts exactly as
-    the saved one, with the attribute ``twin_revision`` (the revision loaded). Raises a
-    one-line :class:`DataError` naming the file at fault.
+    **Returns:** an `update.UpdateResult` whose twin predicts exactly as
+    the saved one, with the attribute `twin_revision` (the revision loaded). Raises a
+    one-line `DataError` naming the file at fault.
     """
     from dtwin_jax.update import SamplerSettings, UpdateResult
 

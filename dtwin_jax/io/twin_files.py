@@ -1,15 +1,15 @@
-"""Defensive readers of a twin's files (:mod:`dtwin_jax.io.store`).
+"""Defensive readers of a twin's files (`dtwin_jax.io.store`).
 
 A twin folder travels between users and is untrusted: every file is checked against the
-header before use, and every failure is a one-line :class:`DataError` naming the file.
+header before use, and every failure is a one-line `DataError` naming the file.
 
-* the header (``header.json``; ``twin.json`` of a version-1 twin): a schema check of every
+* the header (`header.json`; `twin.json` of a version-1 twin): a schema check of every
   field (presence, type, known states, modes and kinds);
-* ``posterior.nc``: read with h5py from bytes already checksummed, only the datasets the
+* `posterior.nc`: read with h5py from bytes already checksummed, only the datasets the
   header names, refusing external storage, links, virtual datasets, filters other than
   HDF5's built-in ones and unexpected shapes or dtypes (a netCDF reader would follow what
   the file says: external storage reads any local file);
-* ``statistics.npz``: no pickles; exactly the expected keys, shapes and float dtypes.
+* `statistics.npz`: no pickles; exactly the expected keys, shapes and float dtypes.
 """
 
 from __future__ import annotations
@@ -34,7 +34,14 @@ _STATS_FIELDS = ("gram", "xty", "yty", "n")
 
 
 def sha256(data: bytes) -> str:
-    """Hex SHA-256 of ``data``."""
+    """Hex SHA-256 of `data`.
+
+    **Arguments:**
+
+    - `data`: the bytes to hash.
+
+    **Returns:** the digest, 64 lowercase hex digits.
+    """
     return hashlib.sha256(data).hexdigest()
 
 
@@ -103,10 +110,20 @@ def _short(v) -> str:
 
 
 def check_header(head, name: str, *, terms_required: bool) -> dict:
-    """Check the twin header ``head`` (parsed JSON) read from the file ``name``: every field
-    present with its type, equations of known states and kinds (``terms`` lists each
-    equation's term names when ``terms_required``, format version 2), settings and
-    refinement usable. Returns ``head``; raises a one-line :class:`DataError`."""
+    """Check a twin header: every field present with its type, equations of known states and kinds.
+
+    Also checks that the settings and the refinement are usable. Raises a one-line
+    `DataError` naming the file and the field.
+
+    **Arguments:**
+
+    - `head`: the header, parsed JSON.
+    - `name`: the file it was read from, for error messages.
+    - `terms_required`: whether each equation must list its term names in `terms` (format
+      version 2).
+
+    **Returns:** `head`, unchanged.
+    """
     where = f"twin header '{name}'"
     if not isinstance(head, dict):
         raise DataError(f"{where} is not a JSON object")
@@ -171,7 +188,7 @@ def _first_line(e: Exception) -> str:
 
 
 def _dataset(group, key: str, name: str):
-    """The plain dataset ``key`` of ``group``: no link, external storage, virtual layout or
+    """The plain dataset `key` of `group`: no link, external storage, virtual layout or
     filter plugin (each could make HDF5 read what the file names, not what it holds)."""
     import h5py
 
@@ -220,8 +237,18 @@ def _posterior_group(f, name: str):
 
 
 def read_term_names(data: bytes, name: str, tag: str) -> tuple[str, ...]:
-    """A version-1 twin's term names of equation ``tag`` (``<state>_<kind>``): the string
-    coordinate ``posterior/term_<tag>`` (version 2 keeps them in the header)."""
+    """A version-1 twin's term names of one equation, from `posterior.nc`.
+
+    They are the string coordinate `posterior/term_<tag>` (version 2 keeps them in the header).
+
+    **Arguments:**
+
+    - `data`: the bytes of `posterior.nc`, already checksummed.
+    - `name`: the file's path, for error messages.
+    - `tag`: the equation, `<state>_<kind>`.
+
+    **Returns:** the term names, a tuple of strings.
+    """
     with _h5(data, name) as f:
         ds = _dataset(_posterior_group(f, name), f"term_{tag}", name)
         if ds.ndim != 1 or ds.dtype.kind not in "OSU":
@@ -234,9 +261,20 @@ def read_term_names(data: bytes, name: str, tag: str) -> tuple[str, ...]:
 
 
 def read_posterior(data: bytes, name: str, equations: list[tuple[str, str, int]], chains: int, draws: int) -> dict:
-    """Draws of every equation ``(state, kind, K)`` from ``posterior.nc`` (bytes): a dict
-    ``"<state>_<kind>" -> (gamma (chains, draws, K) bool, theta (chains, draws, K) float64,
-    sigma2 (chains, draws) float64)``, each checked against the header's shapes."""
+    """Draws of every equation from `posterior.nc`, each checked against the header's shapes.
+
+    **Arguments:**
+
+    - `data`: the bytes of `posterior.nc`, already checksummed.
+    - `name`: the file's path, for error messages.
+    - `equations`: one `(state, kind, K)` per equation, `K` its number of terms.
+    - `chains`: the number of chains the header gives.
+    - `draws`: the number of draws per chain the header gives.
+
+    **Returns:** a dict `"<state>_<kind>" -> (gamma, theta, sigma2)`: inclusion indicators
+    `(chains, draws, K)` bool, coefficients `(chains, draws, K)` float64 and noise variances
+    `(chains, draws)` float64.
+    """
     out = {}
     with _h5(data, name) as f:
         post = _posterior_group(f, name)
@@ -265,11 +303,22 @@ SPREAD_KIND = "drift_spread"
 def read_statistics(data: bytes, name: str, expected: dict[str, tuple[int, int]],
                     optional: dict[str, tuple[int, int]] | None = None, max_lead: int = 0,
                     maybe: dict[str, tuple[int, int]] | None = None) -> dict:
-    """The sufficient statistics of ``statistics.npz`` (bytes): ``expected`` maps each kind
-    to ``(q equations, K terms)``; returns ``kind -> {gram (q, K, K), xty (q, K), yty (q,),
-    n (q,)}`` as float64, exactly those keys, no pickled objects. ``optional`` kinds (a
-    monitor's recent windows) may be there or not, all together, each with a leading axis of
-    the same length ``P <= max_lead``; ``maybe`` kinds may be there or not, each alone."""
+    """The sufficient statistics of `statistics.npz`: exactly the expected keys, no pickled objects.
+
+    **Arguments:**
+
+    - `data`: the bytes of `statistics.npz`, already checksummed.
+    - `name`: the file's path, for error messages.
+    - `expected`: the kinds that must be there, each mapped to `(q equations, K terms)`.
+    - `optional`: kinds (a monitor's recent windows) that may be there or not, all together,
+      each with a leading axis of the same length `P <= max_lead`; None (default) for none.
+    - `max_lead`: the largest length `P` of the optional kinds' leading axis.
+    - `maybe`: kinds that may be there or not, each alone, mapped like `expected`; None
+      (default) for none.
+
+    **Returns:** `kind -> {gram (q, K, K), xty (q, K), yty (q,), n (q,)}` as float64 (with a
+    leading axis `(P,)` for the optional kinds), one entry per kind present.
+    """
     optional = optional or {}
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:

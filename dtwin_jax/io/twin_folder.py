@@ -1,4 +1,4 @@
-"""A twin folder's layout on disk (:mod:`dtwin_jax.io.store`): its lock, the names a save
+"""A twin folder's layout on disk (`dtwin_jax.io.store`): its lock, the names a save
 writes (and may therefore remove), the check of a destination before any work, and reads
 that follow no link and stop at 1 GiB."""
 
@@ -29,7 +29,7 @@ _held = threading.local()  # this thread's held locks: realpath -> depth (re-ent
 
 
 def umask() -> int:
-    """The process's umask: written files get ``0o666 & ~umask()`` (tempfile makes 0600).
+    """The process's umask: written files get `0o666 & ~umask()` (tempfile makes 0600).
     Linux reports it in /proc; elsewhere it can only be read by setting it (to 022 for that
     instant, not 0, so that another thread's file is never made world-writable)."""
     try:
@@ -45,16 +45,19 @@ def umask() -> int:
 
 @contextmanager
 def locked(path, *, create: bool = False, on_wait=None):
-    """Hold the exclusive lock of the twin folder ``path`` (``fcntl.flock`` on ``path/.lock``)
-    while the ``with`` block runs: other processes' saves and command-line updates wait.
+    """Hold the exclusive lock of the twin folder `path` (`fcntl.flock` on `path/.lock`)
+    while the `with` block runs: other processes' saves and command-line updates wait.
     Re-entrant within a thread.
 
     **Arguments:**
 
-    - ``path``: the twin folder; it must hold a twin unless ``create`` (then it is made).
-    - ``on_wait``: called with no arguments once, before waiting for another holder.
+    - `path`: the twin folder; it must hold a twin unless `create`.
+    - `create`: make the folder (and its parents) if absent, and accept one that holds no
+      twin yet (default False).
+    - `on_wait`: called with no arguments once, before waiting for another holder; None
+      (default) to wait silently.
 
-    **Returns:** a context manager yielding ``Path(path)``.
+    **Returns:** a context manager yielding `Path(path)`.
     """
     path = Path(path)
     key = os.path.realpath(path)
@@ -90,16 +93,16 @@ def locked(path, *, create: bool = False, on_wait=None):
 
 
 def check_target(path, *, force: bool = False) -> Path:
-    """Refuse a twin destination before any work is done: ``path`` must be absent, an empty
-    folder (or one holding only a killed save's leftovers), or a twin of ours when ``force``
+    """Refuse a twin destination before any work is done: `path` must be absent, an empty
+    folder (or one holding only a killed save's leftovers), or a twin of ours when `force`
     (or, for a re-update, the twin it continues), inside a writable folder.
 
     **Arguments:**
 
-    - ``path``: the twin folder to be written.
-    - ``force``: accept an existing twin (``discover --save-twin --force``).
+    - `path`: the twin folder to be written.
+    - `force`: accept an existing twin (`discover --save-twin --force`).
 
-    **Returns:** ``Path(path)``; raises a one-line :class:`DataError`.
+    **Returns:** `Path(path)`; raises a one-line `DataError`.
     """
     path = Path(path)
     if path.is_symlink() or (path.exists() and not path.is_dir()):
@@ -122,7 +125,7 @@ def check_target(path, *, force: bool = False) -> Path:
 
 
 def _is_twin(path: Path) -> bool:
-    """Whether ``path`` holds a ``twin.json`` of ours; one that is not is refused."""
+    """Whether `path` holds a `twin.json` of ours; one that is not is refused."""
     pointer = path / "twin.json"
     if not os.path.lexists(pointer):
         return False
@@ -133,7 +136,7 @@ def _is_twin(path: Path) -> bool:
 
 
 def _leftover(path: Path, entry: str) -> bool:
-    """Whether ``path/entry`` is ours to clean: the lock, a killed save's temporary pointer,
+    """Whether `path/entry` is ours to clean: the lock, a killed save's temporary pointer,
     or a version or temporary folder holding only our file names."""
     p = path / entry
     if entry == _LOCK or _TMP_POINTER.fullmatch(entry):
@@ -149,7 +152,16 @@ def _ours(name: str) -> bool:
 
 
 def clean(path: Path, keep: str | None) -> None:
-    """Remove a killed save's leftovers and version folders other than ``keep``."""
+    """Remove a killed save's leftovers and version folders other than `keep`.
+
+    Only our file names are removed, and a folder only when that leaves it empty; links are
+    left alone.
+
+    **Arguments:**
+
+    - `path`: the twin folder.
+    - `keep`: the name of the version folder to keep (e.g. `"v000003"`), or None to keep none.
+    """
     for entry in os.listdir(path):
         p = path / entry
         if p.is_symlink():
@@ -161,8 +173,17 @@ def clean(path: Path, keep: str | None) -> None:
 
 
 def remove_ours(folder: Path, names, *, rmdir: bool) -> None:
-    """Remove the files ``names`` of ``folder`` (all of :func:`_ours` when None; never a
-    folder), then the folder if ``rmdir`` and it is empty: whatever else it holds stays."""
+    """Remove our files from a folder, then the folder if asked and it is empty.
+
+    Never removes a folder inside it: whatever else it holds stays.
+
+    **Arguments:**
+
+    - `folder`: the folder.
+    - `names`: the file names to remove, or None for every name of `_ours` (a save's content
+      files and their writers' temporaries).
+    - `rmdir`: also remove `folder` when that leaves it empty.
+    """
     for name in (names if names is not None else [e for e in os.listdir(folder) if _ours(e)]):
         p = folder / name
         if os.path.lexists(p) and not p.is_dir():
@@ -175,6 +196,12 @@ def remove_ours(folder: Path, names, *, rmdir: bool) -> None:
 
 
 def sync_dir(path: Path) -> None:
+    """Flush a folder's entries to disk (`fsync` of the folder), so that a rename survives a crash.
+
+    **Arguments:**
+
+    - `path`: the folder.
+    """
     fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
     try:
         os.fsync(fd)
@@ -183,7 +210,17 @@ def sync_dir(path: Path) -> None:
 
 
 def read_bytes(path: Path) -> bytes:
-    """A regular file's bytes (no link, FIFO or device; at most 1 GiB)."""
+    """A regular file's bytes (no link, FIFO or device; at most 1 GiB).
+
+    Raises `FileNotFoundError` when it is absent, and a one-line `DataError` when it cannot be
+    opened or is not a regular file of at most 1 GiB.
+
+    **Arguments:**
+
+    - `path`: the file.
+
+    **Returns:** its content.
+    """
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
@@ -198,6 +235,16 @@ def read_bytes(path: Path) -> bytes:
 
 
 def read_json(path: Path):
+    """A JSON file's parsed content, read as `read_bytes` reads it.
+
+    Raises a one-line `DataError` when it is absent, not a regular file or not valid JSON.
+
+    **Arguments:**
+
+    - `path`: the file.
+
+    **Returns:** the parsed JSON value (any type: callers check it is an object).
+    """
     try:
         data = read_bytes(path)
     except FileNotFoundError:

@@ -1,7 +1,7 @@
 """Simulated service lives: one structure measured window after window while its physics
-changes over service time, to judge the monitor (:mod:`dtwin_jax.monitor`).
+changes over service time, to judge the monitor (`dtwin_jax.monitor`).
 
-A life is an :class:`~dtwin_jax.models.systems.Example` (a nominal model and a
+A life is a `dtwin_jax.models.systems.Example` (a nominal model and a
 perturbation) and two schedules over its windows: the perturbation's scale (0 before a term
 appears, 1 after) and the stiffness factor (0.95 after a 5% drop, a slow decline for a
 weakening spring). The state runs on from one window into the next; each window is measured
@@ -26,7 +26,7 @@ __all__ = ["simulate_life"]
 
 @dataclass(frozen=True)
 class _Scaled:
-    """The perturbation ``inner`` times ``params["scale"]`` (hashable: one program per ``inner``)."""
+    """The perturbation `inner` times `params["scale"]` (hashable: one program per `inner`)."""
 
     inner: Callable
 
@@ -54,21 +54,30 @@ def simulate_life(example: systems.Example, key: jax.Array, *, scale, stiffness=
                   output_only: bool = False) -> list[dict]:
     """Simulate and measure one service life, window by window.
 
+    The state runs on from one window into the next; in window `i` the true system is the
+    example's nominal model with its stiffness matrix `K` times `stiffness[i]`, plus its
+    perturbation times `scale[i]`.
+
     **Arguments:**
 
-    - ``example``: the structure (its ``dt``, ``duration`` per window, ``x0`` and
-      ``input_std``).
-    - ``key``: PRNG key.
-    - ``scale``: ``(W,)`` the perturbation's scale in each of the ``W`` windows.
-    - ``stiffness``: ``(W,)`` the factor on the nominal stiffness matrix ``K`` (default 1).
-    - ``level``: noise std as a fraction of each signal's std over the life (every signal).
-    - ``output_only``: driven by Brownian forcing (:func:`systems.simulate_sde`, the
-      example's unit-intensity force through ``B``); no force is measured.
+    - `example`: the structure, a `systems.Example` (its `dt` s, `duration` s per window,
+      `x0` and `input_std`).
+    - `key`: JAX PRNG key (the inputs or Brownian forcing, and the measurement noise).
+    - `scale`: the perturbation's scale in each of the `W` windows, `(W,)` (0 before a term
+      appears, 1 after).
+    - `stiffness`: the factor on the nominal stiffness matrix `K` in each window, `(W,)`, or
+      None (default) for 1 throughout.
+    - `level`: measurement noise std as a fraction of each signal's std over the life (every
+      signal).
+    - `output_only`: drive the structure by Brownian forcing (`systems.simulate_sde`, the
+      example's unit-intensity force through `B`) and measure no force; default False: a
+      white input of std `input_std` held over each sample, measured.
 
-    **Returns:** ``W`` windows, ``t (N,)`` running on over the life (s), and the measured
-    ``x (N, m)``, ``xdot`` and ``u (N, n)``: input-output, ``xdot (N, m)`` every state's rate;
-    output-only, ``xdot (N, d)`` what averaging accelerometers read (each velocity's change
-    over the sample interval around the sample, over ``dt``), named by ``xdot_names``.
+    **Returns:** a list of `W` window dicts, each with `t (N,)` running on over the life (s)
+    and the measured `x (N, m)`, `xdot` and `u (N, n)`: input-output, `xdot (N, m)` every
+    state's rate; output-only (no `u`), `xdot (N, d)` what averaging accelerometers read
+    (each velocity's change over the sample interval around the sample, over `dt`), named by
+    `xdot_names` (the velocity states' names).
     """
     scale = np.asarray(scale, dtype=float)
     stiffness = np.ones_like(scale) if stiffness is None else np.asarray(stiffness, dtype=float)

@@ -1,6 +1,6 @@
 """Realistic simulated plants for tests and examples, beyond the paper's open-loop oscillators.
 
-:func:`positioning_stage`: a linear stage of about 100 kg with viscous and Coulomb friction
+`positioning_stage`: a linear stage of about 100 kg with viscous and Coulomb friction
 and a constant offset force, under a digital PD position controller following a smooth
 reference, as measured in service: the encoder position, quantized, and the motor force the
 controller commanded, both at 1 kHz. The controller closes the loop on the quantized position
@@ -61,13 +61,21 @@ class StageParams(NamedTuple):
 
 def stage_nominal(params: StageParams = StageParams()) -> LinearSecondOrder:
     """The nominal model a user would write: mass and viscous friction, no spring, no Coulomb
-    friction, no offset (`M q'' + C q' = u`)."""
+    friction, no offset (`M q'' + C q' = u`).
+
+    **Arguments:**
+
+    - `params`: the stage, `StageParams` (its `mass` kg and `viscous` N s/m are used).
+
+    **Returns:** the `LinearSecondOrder` with `M = [[mass]]`, `C = [[viscous]]`, `K = [[0]]`,
+    `B = [[1]]` (states `x1 = q` m, `x2 = v` m/s; input `u` N).
+    """
     return LinearSecondOrder.create([[params.mass]], [[params.viscous]], [[0.0]], [[1.0]])
 
 
 def _sines(key, freqs, t):
-    """Sinusoids at ``freqs (F,)`` Hz on ``t (N,)``: random phases, amplitudes in [1/2, 1).
-    Returns ``(waves (N, F), phases (F,), amplitudes (F,))``."""
+    """Sinusoids at `freqs (F,)` Hz on `t (N,)`: random phases, amplitudes in [1/2, 1).
+    Returns `(waves (N, F), phases (F,), amplitudes (F,))`."""
     k1, k2 = jax.random.split(key)
     phases = jax.random.uniform(k1, freqs.shape, maxval=2 * jnp.pi)
     amplitudes = jax.random.uniform(k2, freqs.shape, minval=0.5, maxval=1.0)
@@ -104,9 +112,10 @@ def positioning_stage(key, duration: float = 25.0, dt: float = 1e-3, params: Sta
 
     **Arguments:**
 
-    - `key`: a JAX PRNG key (the reference and the force sensor's noise).
-    - `duration` s, `dt` s: the record.
-    - `params`: :class:`StageParams`.
+    - `key`: a JAX PRNG key (the reference, the disturbance and the force sensor's noise).
+    - `duration`: the record's length, s (at least 16 samples).
+    - `dt`: the sample interval, s (1 kHz by default).
+    - `params`: the stage and its controller, `StageParams`.
 
     **Returns:** a dict with `t (N,)` s; `x (N, 1)` the measured (quantized) position m and
     `x_names = ["x1"]`; `u (N, 1)` the measured motor force N; `reference (N,)` m; and the

@@ -1,11 +1,11 @@
 """The updated twin as a simulator, and its posterior predictive (paper Section 5.6).
 
-:class:`UpdatedTwin` is the nominal model plus the discovered drift terms (and, for an
+`UpdatedTwin` is the nominal model plus the discovered drift terms (and, for an
 output-only twin, the discovered diffusion): an equinox module, so its coefficient arrays
 may carry a leading axis of posterior draws and the twin vmaps over them.
-:func:`posterior_twins` stacks draws of an update's posterior; :func:`predict` simulates
+`posterior_twins` stacks draws of an update's posterior; `predict` simulates
 them (an ODE under a given input, or an SDE under Brownian forcing, both with diffrax
-through :mod:`dtwin_jax.models.systems`) and returns the mean and the 2.5% and 97.5% quantiles of
+through `dtwin_jax.models.systems`) and returns the mean and the 2.5% and 97.5% quantiles of
 every state.
 """
 
@@ -59,12 +59,12 @@ class UpdatedTwin(eqx.Module):
     `diffusion_coefficients (d, Kd)` of `diffusion_library` give `Gamma_vv(x)` (velocity^2/s)
     of every velocity, or are None for an input-output twin. Arrays may carry a leading
     batch axis (posterior draws): vmap over it with `eqx.filter_vmap`. `interpolation`:
-    how the input behaves between samples (:func:`systems.check_interpolation`), as in the
+    how the input behaves between samples (`systems.check_interpolation`), as in the
     data the twin was updated from. `state_range (m, 2)`: the smallest and largest value of
     every state in that data (`preprocessing["state_range"]`), which bounds a prediction
-    (:func:`divergence_bounds`), or None. `model_error_sd (m,)`: the twin's free-run error
-    on that data (:mod:`dtwin_jax.model_error`), added to a prediction's band, or None.
-    `terms`: None, or the drift library as data (:func:`library_as_data`), which the
+    (`divergence_bounds`), or None. `model_error_sd (m,)`: the twin's free-run error
+    on that data (`dtwin_jax.model_error`), added to a prediction's band, or None.
+    `terms`: None, or the drift library as data (`library_as_data`), which the
     coefficients' columns then follow.
     """
 
@@ -80,13 +80,30 @@ class UpdatedTwin(eqx.Module):
     terms: TermTable | None = None
 
     def perturbation(self, x, u):
-        """Discovered extra rate `(m,)` at one sample `x (m,)`, `u (n,)`."""
+        """Discovered extra rate at one sample, `S Theta L(x, u)`.
+
+        **Arguments:**
+
+        - `x`: the state `(m,)`.
+        - `u`: the input `(n,)` (read only by the library's `input` family).
+
+        **Returns:** the extra rate `(m,)`: the discovered terms in the `regressed` rows, zero
+        in the others (coefficients of one draw, unbatched).
+        """
         values = self.library.eval_single(x, u) if self.terms is None else eval_terms(self.terms, x, u)
         h = jnp.asarray(self.coefficients) @ values
         return jnp.zeros(self.nominal.m, h.dtype).at[jnp.asarray(self.regressed)].set(h)
 
     def rate(self, x, u):
-        """Updated state rate `(m,)` at one sample `x (m,)`, `u (n,)`."""
+        """Updated state rate at one sample: the nominal rate plus `perturbation`.
+
+        **Arguments:**
+
+        - `x`: the state `(m,)`.
+        - `u`: the input `(n,)`.
+
+        **Returns:** the rate `(m,)`.
+        """
         return self.nominal.rate(x, u) + self.perturbation(x, u)
 
     @property
@@ -99,17 +116,29 @@ class UpdatedTwin(eqx.Module):
         return self.diffusion_library is None or set(self.diffusion_library.names) <= {"1"}
 
     def diffusion_variance(self, x):
-        """Discovered `Gamma_vv(x) (d,)` of every velocity at `x (m,)`, floored at zero."""
+        """Discovered diffusion `Gamma_vv(x)` of every velocity at one state, floored at zero.
+
+        **Arguments:**
+
+        - `x`: the state `(m,)`.
+
+        **Returns:** `Gamma_vv(x)`, shape `(d,)`, velocity^2/s.
+        """
         gamma = jnp.asarray(self.diffusion_coefficients) @ self.diffusion_library.eval_single(x)
         return jnp.maximum(gamma, 0.0)
 
     def diffusion(self, x):
-        """`G(x) (m, n)` of the SDE: the nominal force path `M^-1 B` with each velocity row
-        rescaled so that `(G G^T)_vv = Gamma_vv(x)`.
+        """`G(x)` of the SDE: the nominal force path `M^-1 B`, rescaled to the discovered diffusion.
 
-        The unknown force keeps the nominal model's input structure (so one Brownian path
-        drives the truth and the twin alike); a velocity the nominal `B` does not force
-        gets no noise.
+        Each velocity row is rescaled so that `(G G^T)_vv = Gamma_vv(x)`. The unknown force
+        keeps the nominal model's input structure (so one Brownian path drives the truth and
+        the twin alike); a velocity the nominal `B` does not force gets no noise.
+
+        **Arguments:**
+
+        - `x`: the state `(m,)`.
+
+        **Returns:** `G(x)`, shape `(m, n)`; zero kinematic and extra rows.
         """
         G = systems.diffusion_matrix(self.nominal)
         vel = jnp.asarray(self.nominal.velocity_index)
@@ -129,9 +158,21 @@ def posterior_twins(result, num_draws: int = 100, key=None) -> UpdatedTwin:
     """`num_draws` joint posterior draws of an update's twin, stacked on a leading axis.
 
     Every draw takes all equations' coefficients from one (chain, draw) of the Gibbs run:
-    the twin's parameter uncertainty, inclusion included (an excluded term is zero). A
-    refined update (:func:`dtwin_jax.update.refine_output_error`) draws the selected terms'
-    coefficients from their refined Gaussian posterior instead (the others are zero).
+    the twin's parameter uncertainty, inclusion included (an excluded term is zero). The
+    (chain, draw) pairs are chosen at random, with replacement only when `num_draws` exceeds
+    the run's draws. A refined update (`dtwin_jax.update.refine_output_error`) draws the
+    selected terms' coefficients from their refined Gaussian posterior instead (the others
+    are zero).
+
+    **Arguments:**
+
+    - `result`: the update's `UpdateResult`.
+    - `num_draws`: `S`, the number of draws (default 100), positive.
+    - `key`: JAX PRNG key of the choice of draws (and of the refined draws); None (default)
+      for `jax.random.key(0)`.
+
+    **Returns:** the `UpdatedTwin` with `coefficients (S, q, K)` (and, output-only,
+    `diffusion_coefficients (S, d, Kd)` of the diffusion terms some draw uses).
     """
     if num_draws < 1:
         raise DataError(f"num_draws must be positive, got {num_draws}")
@@ -159,17 +200,34 @@ def posterior_twins(result, num_draws: int = 100, key=None) -> UpdatedTwin:
 
 
 def refined_coefficients(shape, index, values) -> np.ndarray:
-    """Coefficients of `shape (..., q, K)`: the flat entries `index (P,)` of each `(q, K)`
-    block are `values (..., P)`, all others zero (an output-error refinement's terms)."""
+    """Coefficients with an output-error refinement's terms set and all others zero.
+
+    **Arguments:**
+
+    - `shape`: the coefficients' shape `(..., q, K)`.
+    - `index`: the flat entries `(P,)` of each `(q, K)` block that the refinement holds.
+    - `values`: their values `(..., P)`, in each rate's units.
+
+    **Returns:** the coefficients, a float64 array of `shape`.
+    """
     flat = np.zeros(tuple(shape[:-2]) + (shape[-2] * shape[-1],))
     flat[..., np.asarray(index, int)] = values
     return flat.reshape(shape)
 
 
 def diffusion_terms(result, dcoef) -> tuple[Library, jax.Array]:
-    """An output-only update's diffusion library, kept to the terms that some row of
-    `dcoef (..., d, Kd)` uses (a constant-only diffusion stays additive noise, for ShARK),
-    and those coefficients."""
+    """An output-only update's diffusion library, kept to the terms some row of `dcoef` uses.
+
+    A constant-only diffusion then stays additive noise, for ShARK.
+
+    **Arguments:**
+
+    - `result`: the update's `UpdateResult` (its `preprocessing["diffusion_library"]`).
+    - `dcoef`: diffusion coefficients `(..., d, Kd)` over the whole diffusion library.
+
+    **Returns:** `(library, coefficients)`: the diffusion `Library` cut to the used terms, and
+    `dcoef` cut to them, `(..., d, Kd')`.
+    """
     dcoef = np.asarray(dcoef)
     used = _used_columns(dcoef)
     dlib = parse_library(result.preprocessing["diffusion_library"], result.nominal.m, 0).subset(used)
@@ -190,9 +248,19 @@ def _used_columns(coef) -> np.ndarray:
 
 
 def used_terms(twins: UpdatedTwin) -> UpdatedTwin:
-    """`twins` with the drift library cut to the terms some draw uses (the same rate: the
-    others are zero in every draw). The solver then evaluates a handful of terms at each
-    stage, not the whole library (example 2: 4 of 256). Traced coefficients: unchanged."""
+    """`twins` with the drift library cut to the terms some draw uses.
+
+    The same rate: the others are zero in every draw. The solver then evaluates a handful of
+    terms at each stage, not the whole library (example 2: 4 of 256). Traced coefficients:
+    unchanged.
+
+    **Arguments:**
+
+    - `twins`: the stacked twins, coefficients `(S, q, K)`.
+
+    **Returns:** the twins with library and coefficients `(S, q, K')` cut to the used terms
+    (`twins` itself when all are used).
+    """
     try:
         coef = np.asarray(twins.coefficients)
     except jax.errors.TracerArrayConversionError:
@@ -204,11 +272,21 @@ def used_terms(twins: UpdatedTwin) -> UpdatedTwin:
 
 
 def library_as_data(twins: UpdatedTwin) -> UpdatedTwin:
-    """`twins` with the drift library as data (:func:`~dtwin_jax.library.term_table`) and
-    the coefficients padded with zeros to the table's size class: the same rate, and a
-    solver program that depends on that size class alone, not on which terms (a monitored
-    structure's twin compiles its simulation once, whatever its selection becomes). Traced
-    coefficients: unchanged."""
+    """`twins` with the drift library as data and the coefficients padded to its size class.
+
+    The drift library becomes a table (`dtwin_jax.library.term_table`) and the coefficients
+    are padded with zeros to the table's size class: the same rate, and a solver program that
+    depends on that size class alone, not on which terms (a monitored structure's twin
+    compiles its simulation once, whatever its selection becomes). Traced coefficients, or
+    twins already holding their terms as data: unchanged.
+
+    **Arguments:**
+
+    - `twins`: the stacked twins, coefficients `(S, q, K)`.
+
+    **Returns:** the twins with `terms` set, an empty `library` and coefficients padded with
+    zero columns to the table's size.
+    """
     try:
         coef = np.asarray(twins.coefficients)
     except jax.errors.TracerArrayConversionError:
@@ -222,9 +300,17 @@ def library_as_data(twins: UpdatedTwin) -> UpdatedTwin:
 
 
 def is_nonsmooth(twins: UpdatedTwin) -> bool:
-    """True when a term of a non-smooth family (:data:`systems.NONSMOOTH_FAMILIES`: `sign`,
-    `Abs`, `x*Abs`) is selected in some draw of `twins` (any such term in the library when
-    the coefficients are traced)."""
+    """Whether a term of a non-smooth family is selected in some draw of `twins`.
+
+    The non-smooth families are `systems.NONSMOOTH_FAMILIES`: `sign`, `Abs`, `x*Abs`. With
+    traced coefficients, any such term in the library counts.
+
+    **Arguments:**
+
+    - `twins`: the stacked twins.
+
+    **Returns:** True when such a term is used (or, traced, present), else False.
+    """
     families = [f for f, idx in twins.library.blocks for _ in idx]
     rough = np.array([f in systems.NONSMOOTH_FAMILIES for f in families])
     if not rough.any():
@@ -237,9 +323,18 @@ def is_nonsmooth(twins: UpdatedTwin) -> bool:
 
 
 def fixed_substeps(nominal: LinearSecondOrder, t) -> int:
-    """Fixed steps per sample interval of `t (N,)` s for a non-smooth twin: at most
-    :data:`STEP_RADIANS` of the nominal model's fastest mode per step, at least
-    :data:`MIN_SUBSTEPS` (8 when the model or `t` is traced)."""
+    """Fixed solver steps per sample interval for a non-smooth twin.
+
+    At most `STEP_RADIANS` (0.05 rad) of the nominal model's fastest mode per step, at least
+    `MIN_SUBSTEPS` (4) and at most `MAX_SUBSTEPS` (256); 8 when the model or `t` is traced.
+
+    **Arguments:**
+
+    - `nominal`: the twin's nominal model.
+    - `t`: sample times `(N,)`, s (the longest interval counts).
+
+    **Returns:** the number of steps per sample interval, an int.
+    """
     try:
         M, C, K = (np.asarray(a) for a in (nominal.M, nominal.C, nominal.K))
         dt = float(np.max(np.diff(np.asarray(t))))
@@ -252,15 +347,24 @@ def fixed_substeps(nominal: LinearSecondOrder, t) -> int:
 
 
 def divergence_bounds(twins: UpdatedTwin, x0, u=None) -> tuple[jax.Array, jax.Array]:
-    """`lower, upper (m,)`: the box a prediction from `x0 (m,)` under `u (N, n)` (or None)
-    must stay in; a draw that leaves it has diverged.
+    """The box a prediction must stay in; a draw that leaves it has diverged.
 
     With a training range (`twins.state_range`, centre `c`, half-width `w`): `c +- 100
-    max(w, |x0 - c|)` (:data:`DIVERGENCE_FACTOR`), unbounded for a state that never moved.
-    Without: `+- 1e6` (:data:`FALLBACK_FACTOR`) times the scale of every state, the larger
+    max(w, |x0 - c|)` (`DIVERGENCE_FACTOR`), unbounded for a state that never moved.
+    Without: `+- 1e6` (`FALLBACK_FACTOR`) times the scale of every state, the larger
     of `|x0|` and the nominal model's static response to the largest input (displacements;
     times the fastest nominal frequency for velocities); unbounded where that scale is 0.
-    Jittable."""
+    Jittable.
+
+    **Arguments:**
+
+    - `twins`: the twins (their `state_range`, or their nominal model).
+    - `x0`: the prediction's initial state `(m,)`.
+    - `u`: the prediction's input `(N, n)` or `(S, N, n)`, or None (default; output-only).
+
+    **Returns:** `(lower, upper)`: the bounds of every state, each `(m,)`, the states' units
+    (infinite where unbounded).
+    """
     x0 = jnp.asarray(x0, dtype=float)
     if twins.state_range is not None:
         return _range_bounds(jnp.asarray(twins.state_range, dtype=float), x0)
@@ -309,9 +413,9 @@ def _paths(twins: UpdatedTwin, x0, t, u, keys, lower, upper, substeps):
 
 
 def _run_paths(twins: UpdatedTwin, x0, t, u, keys, lower, upper, substeps):
-    """:func:`_paths` through an exported program where the process keeps them (the command
-    line): a new process then skips tracing the diffrax solve (about 2 s of a warm update's
-    model-error check)."""
+    """`_paths` through an exported program where the process keeps them (the command
+    line): a new process then skips tracing the diffrax solve (time that a warm update's
+    model-error check would otherwise spend)."""
     args = strong_types(jax.tree.map(jnp.asarray, (twins, x0, t, u, keys, lower, upper)))
     return aot.call("paths", lambda *a: _paths(*a, substeps), args, (substeps,))
 
@@ -332,35 +436,42 @@ def _chunks(S: int, progress: bool) -> int:
 
 def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = False, substeps: int | None = None,
             progress: bool = False, max_failed: float = MAX_FAILED, model_error: bool = True) -> dict:
-    """Posterior-predictive simulation of stacked twins (:func:`posterior_twins`).
+    """Posterior-predictive simulation of stacked twins (`posterior_twins`).
+
+    An input-output twin is simulated under the given input; an output-only twin is driven
+    by Brownian forcing. A draw diverges when a state leaves `divergence_bounds` (100x the
+    training range) or becomes non-finite: a diffrax `Event` ends its solve there, so an
+    unstable twin is reported in seconds; running out of solver steps is reported the same
+    way. Smooth input-output twins take adaptive Dopri8.
 
     **Arguments:**
 
-    - `x0 (m,)`, `t (N,)` s; `u (N, n)` the input of an input-output twin (held over each
-      step or interpolated linearly, as `twins.interpolation`), or `(S, N, n)` one input per
-      draw (future loads that are themselves uncertain).
-    - An output-only twin is driven by Brownian forcing: an independent path per draw from
-      `key` (the band holds the process noise too), or with `shared_path` one path for all
-      (the band holds the parameter uncertainty only; the truth driven by
-      `systems.simulate_sde(..., key)` sees the same path).
+    - `twins`: the stacked twins, `S` draws on the leading axis of their coefficients.
+    - `x0`: the initial state `(m,)`.
+    - `t`: sample times `(N,)`, s.
+    - `u`: the input `(N, n)` of an input-output twin (held over each step or interpolated,
+      as `twins.interpolation`), or `(S, N, n)`, one input per draw (future loads that are
+      themselves uncertain); required for an input-output twin, ignored for an output-only
+      one.
+    - `key`: JAX PRNG key of an output-only twin's Brownian paths, an independent path per
+      draw (the band holds the process noise too); None (default) for `jax.random.key(0)`.
+    - `shared_path`: one Brownian path for all draws (the band holds the parameter
+      uncertainty only; the truth driven by `systems.simulate_sde(..., key)` sees the same
+      path). Default False.
     - `substeps`: fixed solver steps per sample interval for a twin with a non-smooth term
-      (:func:`is_nonsmooth`: `sign`, `Abs`), which an adaptive solver chatters on; default
-      :func:`fixed_substeps`. Smooth input-output twins take adaptive Dopri8.
+      (`is_nonsmooth`: `sign`, `Abs`), which an adaptive solver chatters on; None (default)
+      for `fixed_substeps`.
     - `progress`: a tqdm bar on standard error, advanced by chunks of about a tenth of the
-      draws (each chunk one call of the same compiled program).
+      draws (each chunk one call of the same compiled program). Default False.
     - `max_failed`: the largest fraction of draws that may diverge or fail (dropped from
-      mean and band with a :class:`PredictionWarning`); more raise a one-line `DataError`
-      saying when and in how many draws.
+      mean and band with a `PredictionWarning`); more raise a one-line `DataError` saying
+      when and in how many draws. Default `MAX_FAILED` (0.05).
     - `model_error`: widen the band by the twin's model error (`twins.model_error_sd`, its
-      free-run error on its training data; :func:`with_model_error`) when it has one.
+      free-run error on its training data; `with_model_error`) when it has one. Default True.
 
-    A draw diverges when a state leaves :func:`divergence_bounds` (100x the training range)
-    or becomes non-finite: a diffrax `Event` ends its solve there, so an unstable twin is
-    reported in seconds; running out of solver steps is reported the same way.
-
-    **Returns:** `t`, `mean`, `lower`, `upper` (2.5% and 97.5% quantiles) `(N, m)` over
-    the draws that finished, `paths (S, N, m)` (NaN for a failed draw), `status (S,)`
-    (:data:`systems.OK`, `DIVERGED`, `MAX_STEPS`, `FAILED`), `stop_time (S,)` s, and
+    **Returns:** a dict: `t (N,)` s; `mean`, `lower`, `upper` (2.5% and 97.5% quantiles),
+    each `(N, m)` over the draws that finished; `paths (S, N, m)` (NaN for a failed draw);
+    `status (S,)` (`systems.OK`, `DIVERGED`, `MAX_STEPS`, `FAILED`); `stop_time (S,)` s; and
     `warnings` (list of str). Jittable with `progress=False`: under `jax.jit` nothing is
     raised or warned, and `status` says which draws failed.
     """
@@ -420,8 +531,16 @@ def predict(twins: UpdatedTwin, x0, t, u=None, *, key=None, shared_path: bool = 
 
 
 def failure_message(status: np.ndarray, stop_time: np.ndarray) -> str:
-    """One line on the draws of a prediction that did not finish (`status (S,)`,
-    `stop_time (S,)` s from :func:`predict`), or "" when all did."""
+    """One line on the draws of a prediction that did not finish, or "" when all did.
+
+    **Arguments:**
+
+    - `status`: the draws' status codes `(S,)` from `predict`.
+    - `stop_time`: the times `(S,)` s their solves reached, from `predict`.
+
+    **Returns:** the message (when, and in how many draws, the twin diverged, ran out of
+    solver steps or failed), or "".
+    """
     S, parts = status.size, []
     for code, what in ((systems.DIVERGED, "the twin diverged at t = {t:.4g} s in {n} of {S} posterior draws (a state "
                                           f"left {DIVERGENCE_FACTOR:g}x its training range, or became non-finite)"),
@@ -435,32 +554,56 @@ def failure_message(status: np.ndarray, stop_time: np.ndarray) -> str:
 
 
 def simulation_error(predicted, measured) -> dict:
-    """Free-run simulation errors of `predicted (N, m)` against `measured (N, m)` per state:
-    RMS error (the signal's units) and normalised RMS error (RMS error / std of measured)."""
+    """Free-run simulation errors of a prediction against a measurement, per state.
+
+    **Arguments:**
+
+    - `predicted`: the simulated states `(N, m)`.
+    - `measured`: the measured states `(N, m)`, the same units.
+
+    **Returns:** `{"rmse": (m,), "nrmse": (m,)}`: the RMS error (the signal's units) and the
+    normalised RMS error (RMS error / std of `measured`, dimensionless).
+    """
     predicted, measured = np.asarray(predicted), np.asarray(measured)
     rms = np.sqrt(np.mean((predicted - measured) ** 2, axis=0))
     return {"rmse": rms, "nrmse": rms / np.std(measured, axis=0)}
 
 
 def with_model_error(prediction: dict, model_sd) -> dict:
-    """`prediction` (from :func:`predict`) with its 95% band widened by a Gaussian model
-    error of std `model_sd` (`(m,)` or scalar, the states' units), which a posterior over
-    the library's coefficients does not carry: the half-widths add in quadrature,
-    `sqrt(((upper - lower) / 2)^2 + (1.96 model_sd)^2)` around the mean.
+    """`prediction` with its 95% band widened by a Gaussian model error of std `model_sd`.
 
-    `model_sd` is typically the twin's free-run error on its own training data
-    (:func:`simulation_error`'s `rmse`, after the start transient): on the Silverbox
-    0.35 mV, and the band then covers 95.4% of the arrow within the training amplitude
-    where the parameter band alone covers 15%."""
+    A posterior over the library's coefficients does not carry the model error: the
+    half-widths add in quadrature, `sqrt(((upper - lower) / 2)^2 + (1.96 model_sd)^2)`
+    around the mean. `model_sd` is typically the twin's free-run error on its own training
+    data (`simulation_error`'s `rmse`, after the start transient): on the Silverbox, within
+    the training amplitude, the widened band covers the arrow close to its nominal 95%, the
+    parameter band alone far less.
+
+    **Arguments:**
+
+    - `prediction`: the dict of `predict` (its `mean`, `lower`, `upper`, `(N, m)`).
+    - `model_sd`: the model error's std, `(m,)` or a scalar, the states' units.
+
+    **Returns:** a copy of `prediction` with `lower` and `upper` `(N, m)` replaced.
+    """
     mean, lower, upper = (jnp.asarray(prediction[k]) for k in ("mean", "lower", "upper"))
     half = jnp.sqrt(((upper - lower) / 2) ** 2 + (1.96 * jnp.asarray(model_sd)) ** 2)
     return {**prediction, "lower": mean - half, "upper": mean + half}
 
 
 def effective_stiffness(twins: UpdatedTwin, x) -> jax.Array:
-    """`K_eff (S, d, d)`: the linear stiffness of each twin draw at state `x (m,)` or
-    `(S, m)`, `-M d(acceleration)/d(displacement)` (force per displacement); equals the
-    nominal `K` where the perturbation adds no stiffness."""
+    """The linear stiffness `K_eff` of each twin draw at a state.
+
+    `K_eff = -M d(acceleration)/d(displacement)` at zero input (force per displacement);
+    equals the nominal `K` where the perturbation adds no stiffness.
+
+    **Arguments:**
+
+    - `twins`: the stacked twins, `S` draws.
+    - `x`: the state `(m,)`, or one per draw `(S, m)`.
+
+    **Returns:** `K_eff`, shape `(S, d, d)`, the nominal `K`'s units.
+    """
     nominal = twins.nominal
     d = nominal.d
     x = jnp.broadcast_to(jnp.asarray(x, dtype=float), (jnp.shape(twins.coefficients)[0], nominal.m))
@@ -483,13 +626,24 @@ def degradation_forecast(twins: UpdatedTwin, prediction: dict, damage: int, crit
                          *, every: int = 10) -> dict:
     """Damage, stiffness loss and failure probability over a long prediction.
 
-    `prediction` from :func:`predict` (its `paths (S, N, m)` from the stacked `twins`);
-    `damage` the index of the damage state, `critical` its failure level. Returns `t`;
-    `damage_mean`, `damage_lower`, `damage_upper` `(N,)` (2.5% and 97.5% over draws);
-    `probability (N,)`, the fraction of draws whose damage has passed `critical` by each
-    time, with a 95% Jeffreys interval for its Monte Carlo error (`probability_lower`,
-    `_upper`); and every `every`-th sample's relative stiffness loss `1 - K_eff / K`
-    (diagonal, `(N', d)`, `loss_t`) at zero displacement and velocity, mean and band.
+    The failure probability at each time is the fraction of draws whose damage has passed
+    `critical` by then, with a 95% Jeffreys interval for its Monte Carlo error. The
+    stiffness loss is the relative loss `1 - K_eff / K` of the diagonal of
+    `effective_stiffness`, along each draw's own damage path with the other states at zero.
+
+    **Arguments:**
+
+    - `twins`: the stacked twins the prediction was made with.
+    - `prediction`: the dict of `predict` (its `t (N,)` s and `paths (S, N, m)`).
+    - `damage`: the index of the damage state among the `m` states.
+    - `critical`: the damage's failure level, in its units.
+    - `every`: the stiffness loss at every `every`-th sample (default 10).
+
+    **Returns:** a dict: `t (N,)` s; `critical`; `damage_mean`, `damage_lower`,
+    `damage_upper` `(N,)` (mean, 2.5% and 97.5% over draws); `probability`,
+    `probability_lower`, `probability_upper` `(N,)`; `loss_t (N',)` s, the times of the
+    stiffness loss; and `loss_mean`, `loss_lower`, `loss_upper` `(N', d)` (mean, 2.5% and
+    97.5% over draws).
     """
     from scipy.stats import beta
 

@@ -47,9 +47,19 @@ _MAX_GAIN = 1e150  # largest |M^-1 K|, |M^-1 C|, |M^-1 B|, |M^-1 F0| entry: squa
 
 
 def real_array(label: str, value) -> np.ndarray:
-    """``value`` as float64, refusing what a float conversion would silently change:
-    complex numbers (the imaginary part dropped), booleans, strings. ``label`` names it in
-    the one-line error (``"'x'"``, ``"nominal M"``)."""
+    """`value` as a float64 array, refusing what a float conversion would silently change.
+
+    Complex numbers (the imaginary part would be dropped), booleans and strings are refused,
+    as is a ragged nested list.
+
+    **Arguments:**
+
+    - `label`: what `value` is, named in the one-line error (`"'x'"`, `"nominal M"`).
+    - `value`: array-like of real numbers, any shape.
+
+    **Returns:** `value` as a float64 `np.ndarray` of its own shape. Raises a one-line
+    `DataError` for anything else.
+    """
     try:
         a = np.asarray(value)
     except ValueError as e:  # ragged nested lists
@@ -80,18 +90,20 @@ class LinearSecondOrder(eqx.Module):
 
         **Arguments:**
 
-        - `M`, `C`, `K`: `(d, d)` real matrices; `M` symmetric (to a relative 1e-10) and
-          positive definite, every one finite.
-        - `B`: `(d, n)` or `(d,)`, the identity when None.
-        - `extra_states`: `E`, a non-negative integer.
-        - `F0`: `(d,)` constant force, zero when None.
+        - `M`: mass matrix `(d, d)`, real, finite, symmetric (to a relative 1e-10) and
+          positive definite.
+        - `C`: damping matrix `(d, d)`, real and finite.
+        - `K`: stiffness matrix `(d, d)`, real and finite.
+        - `B`: input matrix `(d, n)`, or `(d,)` for one input, real and finite; None
+          (default) for the identity `(d, d)`.
+        - `extra_states`: `E`, the number of first-order states appended after the
+          velocities (nominal rate zero), a non-negative integer (default 0).
+        - `F0`: constant force `(d,)` (force units), real and finite; None (default) for zero.
 
-        **Returns:**
-
-        The model. Raises a one-line `DataError` for complex, boolean or string entries, a
-        wrong shape, a non-finite entry, a nonsymmetric, singular or indefinite `M`, or an
-        `M^-1 K`, `M^-1 C`, `M^-1 B`, `M^-1 F0` with an entry beyond 1e150 (whose
-        square, in the update's Gram matrices, would overflow float64).
+        **Returns:** the model, with float arrays. Raises a one-line `DataError` for complex,
+        boolean or string entries, a wrong shape, a non-finite entry, a nonsymmetric, singular
+        or indefinite `M`, or an `M^-1 K`, `M^-1 C`, `M^-1 B`, `M^-1 F0` with an entry beyond
+        1e150 (whose square, in the update's Gram matrices, would overflow float64).
         """
         arrays = {}
         for name, value in (("M", M), ("C", C), ("K", K)):
@@ -184,14 +196,31 @@ class LinearSecondOrder(eqx.Module):
         return tuple(range(self.d, self.m))
 
     def rate(self, x: Float[Array, " m"], u: Float[Array, " n"]) -> Float[Array, " m"]:
-        """Nominal state rate `(m,)` for one state `x (m,)` and input `u (n,)`."""
+        """Nominal state rate at one sample.
+
+        **Arguments:**
+
+        - `x`: the state `(m,)`, `[q, v, e]`.
+        - `u`: the input `(n,)`.
+
+        **Returns:** the rate `(m,)`: `v`, then the accelerations `M^-1 (B u + F0 - C v - K q)`,
+        then zero for the extra states.
+        """
         d = self.d
         q, v = x[:d], x[d : 2 * d]
         a = mass_solve(self.M, self.B @ u + self.F0 - self.C @ v - self.K @ q)
         return jnp.concatenate([v, a, jnp.zeros(self.extra_states, dtype=x.dtype)])
 
     def rate_batch(self, x: Float[Array, "N m"], u: Float[Array, "N n"]) -> Float[Array, "N m"]:
-        """`rate` over samples: `x (N, m)`, `u (N, n)` -> `(N, m)`."""
+        """`rate` over samples.
+
+        **Arguments:**
+
+        - `x`: states `(N, m)`.
+        - `u`: inputs `(N, n)`.
+
+        **Returns:** the nominal rates `(N, m)`.
+        """
         return jax.vmap(self.rate)(x, u)
 
 
@@ -207,10 +236,27 @@ class PerturbedSystem(eqx.Module):
     params: PyTree
 
     def rate(self, x: Float[Array, " m"], u: Float[Array, " n"]) -> Float[Array, " m"]:
-        """True state rate `(m,)` for one sample."""
+        """True state rate at one sample: the nominal rate plus the perturbation's.
+
+        **Arguments:**
+
+        - `x`: the state `(m,)`.
+        - `u`: the input `(n,)`.
+
+        **Returns:** the rate `(m,)`.
+        """
         return self.nominal.rate(x, u) + self.perturbation(x, u, self.params)
 
     def rate_batch(self, x: Float[Array, "N m"], u: Float[Array, "N n"]) -> Float[Array, "N m"]:
+        """`rate` over samples.
+
+        **Arguments:**
+
+        - `x`: states `(N, m)`.
+        - `u`: inputs `(N, n)`.
+
+        **Returns:** the true rates `(N, m)`.
+        """
         return jax.vmap(self.rate)(x, u)
 
 
@@ -235,10 +281,18 @@ UPSAMPLE = 8  # fine samples per step of a band-limited input, linear between th
 
 
 def check_interpolation(interpolation: str) -> str:
-    """The input's behaviour between samples: ``"held"`` (zero-order hold, a digital
-    controller's output), ``"linear"``, or ``"bandlimited"`` (an analogue signal sampled
-    below Nyquist, e.g. a multisine: reconstructed by :func:`upsample`; at a few samples
-    per period linear interpolation of such an input is a large error)."""
+    """Check the name of the input's behaviour between samples.
+
+    `"held"`: zero-order hold, a digital controller's output; `"linear"`; or `"bandlimited"`:
+    an analogue signal sampled below Nyquist, e.g. a multisine, reconstructed by `upsample`
+    (at a few samples per period, linear interpolation of such an input is a large error).
+
+    **Arguments:**
+
+    - `interpolation`: one of `INTERPOLATIONS`, `"held"`, `"linear"` or `"bandlimited"`.
+
+    **Returns:** `interpolation`, unchanged. Raises a one-line `DataError` for any other value.
+    """
     if interpolation not in INTERPOLATIONS:
         raise DataError(f"input interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
     return interpolation
@@ -255,16 +309,16 @@ _MIN_SPECTRUM_SAMPLES = 32  # fewer samples: too few bins in the top band to jud
 
 
 def high_band_fraction(u) -> np.ndarray:
-    """The fraction of each input column's variance above `HIGH_BAND_EDGE` (0.8) times
-    Nyquist: Hann-windowed periodogram of `u` minus its mean per record, pooled over records.
+    """The fraction of each input column's variance above `HIGH_BAND_EDGE` (0.8) times Nyquist.
+
+    From the Hann-windowed periodogram of `u` minus its mean per record, pooled over records.
 
     **Arguments:**
 
-    - `u`: `(N, n)` or `(R, N, n)` sampled inputs, any units, uniform sampling.
+    - `u`: sampled inputs `(N, n)` or `(R, N, n)` with `N >= 2`, any units, uniform sampling.
 
-    **Returns:**
-
-    `(n,)` fractions in `[0, 1]`, dimensionless; NaN for a column with no variance."""
+    **Returns:** fractions `(n,)` in `[0, 1]`, dimensionless; NaN for a column with no variance.
+    """
     u = np.asarray(u, dtype=np.float64)
     if u.ndim == 2:
         u = u[None]
@@ -281,24 +335,24 @@ def high_band_fraction(u) -> np.ndarray:
 
 
 def choose_interpolation(u) -> str:
-    """``"held"`` or ``"bandlimited"`` for the measured input `u`, from its spectrum.
+    """`"held"` or `"bandlimited"` for the measured input `u`, from its spectrum.
 
     A band-limited input (an analogue signal sampled, e.g. a multisine) has almost no power
     near Nyquist; a held input that changes at the samples (held white noise, a controller's
     output, a random signal held over a few samples) has power up to Nyquist from its jumps.
-    Rule: ``"held"`` when any column puts more than `HIGH_BAND_THRESHOLD` (0.2%) of its
-    variance above 0.8 Nyquist (:func:`high_band_fraction`), else ``"bandlimited"``. A held
+    Rule: `"held"` when any column puts more than `HIGH_BAND_THRESHOLD` (0.2%) of its
+    variance above 0.8 Nyquist (`high_band_fraction`), else `"bandlimited"`. A held
     input that varies smoothly (or changes only every ~50 samples or more) reads as
-    band-limited; either reconstruction then is close. ``"linear"`` is never chosen. A
-    constant input, or a record under 32 samples, gives ``"held"`` (nothing to tell apart).
+    band-limited; either reconstruction then is close. `"linear"` is never chosen. A
+    constant input, or a record under 32 samples, gives `"held"` (nothing to tell apart).
 
     **Arguments:**
 
-    - `u`: `(N, n)` or `(R, N, n)` sampled inputs, any units, uniform sampling.
+    - `u`: sampled inputs `(N, n)` or `(R, N, n)` with `N >= 2`, any units, uniform sampling,
+      finite.
 
-    **Returns:**
-
-    ``"held"`` or ``"bandlimited"``."""
+    **Returns:** `"held"` or `"bandlimited"`.
+    """
     u = np.asarray(u, dtype=np.float64)
     if u.ndim not in (2, 3) or u.shape[-2] < 2:
         raise DataError(f"input u must have shape (N, n) or (R, N, n) with N >= 2, got {u.shape}")
@@ -313,18 +367,38 @@ def choose_interpolation(u) -> str:
 
 
 def resolve_interpolation(interpolation: str, u) -> tuple[str, str]:
-    """``(interpolation, chosen_by)``: ``"auto"`` becomes :func:`choose_interpolation` of
-    `u (N, n)` or `(R, N, n)`, chosen by ``"spectrum"``; any other value is checked
-    (:func:`check_interpolation`) and chosen by ``"user"``."""
+    """The input interpolation to use, and who chose it.
+
+    `"auto"` becomes `choose_interpolation` of `u`, chosen by `"spectrum"`; any other value
+    is checked (`check_interpolation`) and chosen by `"user"`.
+
+    **Arguments:**
+
+    - `interpolation`: `"auto"`, `"held"`, `"linear"` or `"bandlimited"`.
+    - `u`: sampled inputs `(N, n)` or `(R, N, n)`; read only for `"auto"`.
+
+    **Returns:** `(interpolation, chosen_by)`: the checked interpolation name and
+    `"spectrum"` or `"user"`.
+    """
     if interpolation == "auto":
         return choose_interpolation(u), "spectrum"
     return check_interpolation(interpolation), "user"
 
 
 def upsample(u, factor: int = UPSAMPLE):
-    """Band-limited reconstruction of `u (N, n)` on a grid `factor` times finer,
-    `(factor (N - 1) + 1, n)`, passing through the samples: zero-padding of the spectrum of
-    the record extended by its mirror image (so its ends meet without a jump)."""
+    """Band-limited reconstruction of a sampled input on a grid `factor` times finer.
+
+    The reconstruction passes through the samples: zero-padding of the spectrum of the record
+    extended by its mirror image (so its ends meet without a jump).
+
+    **Arguments:**
+
+    - `u`: samples `(N, n)` on a uniform grid, any units.
+    - `factor`: fine samples per sample interval (default `UPSAMPLE`, 8).
+
+    **Returns:** the fine samples `(factor (N - 1) + 1, n)`, in `u`'s units; every
+    `factor`-th one is a sample of `u`.
+    """
     u = jnp.asarray(u)
     N = u.shape[0]
     ext = jnp.concatenate([u, u[-2:0:-1]])  # even extension, period 2N - 2
@@ -340,8 +414,17 @@ NONSMOOTH_FAMILIES = ("sign", "abs", "xabs")  # library families with a jump or 
 
 
 def fixed_grid(t: Float[Array, " N"], substeps: int) -> Float[Array, " M"]:
-    """`t (N,)` with `substeps` equal steps in every sample interval, `((N - 1) substeps + 1,)`;
-    every `t_i` is in it exactly (so a held input's jumps are step ends)."""
+    """A time grid with `substeps` equal steps in every sample interval of `t`.
+
+    Every `t_i` is in it exactly (so a held input's jumps are step ends).
+
+    **Arguments:**
+
+    - `t`: sample times `(N,)`, s.
+    - `substeps`: steps per sample interval, a positive integer.
+
+    **Returns:** the grid `((N - 1) substeps + 1,)`, s.
+    """
     frac = jnp.arange(substeps, dtype=t.dtype) / substeps
     inner = (t[:-1, None] + (t[1:] - t[:-1])[:, None] * frac).ravel()
     return jnp.concatenate([inner, t[-1:]])
@@ -349,7 +432,7 @@ def fixed_grid(t: Float[Array, " N"], substeps: int) -> Float[Array, " M"]:
 
 def _solve(system, x0, t, u, *, rtol, atol, max_steps, interpolation, adjoint, substeps, event, throw,
            save_end):
-    """The diffrax solve behind :func:`simulate` and :func:`simulate_checked` (arguments as there)."""
+    """The diffrax solve behind `simulate` and `simulate_checked` (arguments as there)."""
     if interpolation is None:
         interpolation = getattr(system, "interpolation", "held")
     check_interpolation(interpolation)
@@ -422,19 +505,34 @@ def simulate(
 ) -> tuple[Float[Array, "N m"], Float[Array, "N m"]]:
     """Integrate `dX/dt = system.rate(X, u(t))` under the sampled input `u`.
 
-    `interpolation="held"`: `u[i]` holds on `[t_i, t_{i+1})`; `"linear"`: `u` is
-    interpolated linearly between samples; `"bandlimited"`: reconstructed by
-    :func:`upsample`. None: the system's own (an updated twin's, from its data), else held.
-    Held and linear: adaptive Dopri8 (`rtol`, `atol`), every `t_i` a jump time (of the input
-    or its slope) that no step crosses; or, with `substeps`, fixed Bosh3 steps, `substeps`
-    per sample interval (for a non-smooth rate such as Coulomb friction `sign(v)`, on which
-    an adaptive solver chatters). Band-limited: fixed Tsit5 steps on the 8x fine grid
-    (`rtol`, `atol`, `max_steps` unused).
+    Held and linear inputs: adaptive Dopri8 (`rtol`, `atol`), every `t_i` a jump time (of the
+    input or its slope) that no step crosses; or, with `substeps`, fixed Bosh3 steps. A
+    band-limited input: fixed Tsit5 steps on the 8x fine grid of `upsample` (`rtol`, `atol`,
+    `max_steps` and `substeps` unused). The system is time-invariant: the solve runs from
+    `t[0]` shifted to 0, so epoch times keep full precision. A solver failure raises.
 
-    Returns `x (N, m)` at the times `t (N,)` and `xdot (N, m)`, where
-    `xdot[i] = system.rate(x[i], u[i])` is what an ideal accelerometer reads.
-    `max_steps` defaults to `16 N + 4096`. `adjoint`: diffrax's (default
-    `RecursiveCheckpointAdjoint`, reverse mode); `diffrax.ForwardMode()` for `jax.jacfwd`.
+    **Arguments:**
+
+    - `system`: a `PerturbedSystem`, a `LinearSecondOrder`, or another module with their
+      `rate(x, u)` (an updated twin, `prediction.UpdatedTwin`).
+    - `x0`: the initial state `(m,)` at `t[0]`.
+    - `t`: sample times `(N,)`, s, increasing, `N >= 2`.
+    - `u`: the sampled input `(N, n)`.
+    - `rtol`: relative tolerance of the adaptive solver (default 1e-10).
+    - `atol`: absolute tolerance of the adaptive solver, the states' units (default 1e-12).
+    - `max_steps`: the most steps of the adaptive solver; None (default) for `16 N + 4096`.
+    - `interpolation`: the input between samples: `"held"` (`u[i]` holds on
+      `[t_i, t_{i+1})`), `"linear"` (interpolated linearly between samples) or
+      `"bandlimited"` (reconstructed by `upsample`); None (default) for the system's own
+      (an updated twin's, from its data), else held.
+    - `adjoint`: diffrax's adjoint for derivatives; None (default) for
+      `RecursiveCheckpointAdjoint` (reverse mode); `diffrax.ForwardMode()` for `jax.jacfwd`.
+    - `substeps`: None (default) for the adaptive solver; else fixed Bosh3 steps, this many
+      per sample interval (for a non-smooth rate such as Coulomb friction `sign(v)`, on which
+      an adaptive solver chatters).
+
+    **Returns:** `(x, xdot)`: the states `(N, m)` at the times `t` and their rates `(N, m)`,
+    `xdot[i] = system.rate(x[i], u[i])`, what an ideal accelerometer reads.
     """
     t, x0, u = _check_shapes(t, x0, u)
     t = t - t[0]  # time-invariant: from 0, epoch times (t ~ 1.7e9 s) keep full precision
@@ -475,12 +573,31 @@ def simulate_checked(
     interpolation: str | None = None,
     substeps: int | None = None,
 ) -> tuple[Float[Array, "N m"], Array, Array]:
-    """:func:`simulate` that stops instead of failing: a state outside `[lower, upper] (m,)`
-    or non-finite ends the solve (a diffrax `Event`), and running out of solver steps
-    returns rather than raises (`throw=False`). Jittable and vmappable.
+    """`simulate` that stops instead of failing.
 
-    **Returns:** `x (N, m)` (inf after the stop), `status` (:data:`OK`, :data:`DIVERGED`,
-    :data:`MAX_STEPS` or :data:`FAILED`) and `stop_time`, the time (s) the solve reached.
+    A state outside `[lower, upper]` or non-finite ends the solve (a diffrax `Event`), and
+    running out of solver steps returns rather than raises (`throw=False`). Jittable and
+    vmappable. The adjoint is `RecursiveCheckpointAdjoint`.
+
+    **Arguments:**
+
+    - `system`: the system, as in `simulate`.
+    - `x0`: the initial state `(m,)` at `t[0]`.
+    - `t`: sample times `(N,)`, s, increasing, `N >= 2`.
+    - `u`: the sampled input `(N, n)`.
+    - `lower`: the lower bound `(m,)` of every state, its units.
+    - `upper`: the upper bound `(m,)` of every state, its units.
+    - `rtol`: relative tolerance of the adaptive solver (default 1e-10).
+    - `atol`: absolute tolerance of the adaptive solver, the states' units (default 1e-12).
+    - `max_steps`: the most steps of the adaptive solver; None (default) for `16 N + 4096`.
+    - `interpolation`: the input between samples, as in `simulate`; None (default) for the
+      system's own, else held.
+    - `substeps`: None (default) for the adaptive solver, else fixed Bosh3 steps per sample
+      interval, as in `simulate`.
+
+    **Returns:** `(x, status, stop_time)`: the states `(N, m)` (inf after the stop); `status`,
+    a scalar integer code (`OK`, `DIVERGED`, `MAX_STEPS` or `FAILED`); and `stop_time`, the
+    time (s, on the clock of `t`) the solve reached.
     """
     t, x0, u = _check_shapes(t, x0, u)
     t0, t = t[0], t - t[0]  # from 0, as in simulate
@@ -497,8 +614,17 @@ def simulate_checked(
 
 
 def diffusion_matrix(nominal: LinearSecondOrder) -> Float[Array, "m n"]:
-    """`G (m, n)` of `dX = (f + h) dt + G dB`: the force `B dB` enters the velocity rows as
-    `M^-1 B dB`; the kinematic and extra rows get no noise."""
+    """The diffusion matrix `G (m, n)` of `dX = (f + h) dt + G dB` under the force `B dB`.
+
+    The force `B dB` enters the velocity rows as `M^-1 B dB`; the kinematic and extra rows
+    get no noise.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model.
+
+    **Returns:** `G (m, n)`: `M^-1 B` in the velocity rows, zero elsewhere.
+    """
     d = nominal.d
     gain = mass_solve(nominal.M, nominal.B)
     return jnp.zeros((nominal.m, nominal.n), gain.dtype).at[d : 2 * d].set(gain)
@@ -517,7 +643,15 @@ def _sde_diffusion(s, y, system):
 
 
 def system_nominal(system: PerturbedSystem | LinearSecondOrder) -> LinearSecondOrder:
-    """The nominal model of a system (itself when it is nominal)."""
+    """The nominal model of a system (itself when it is nominal).
+
+    **Arguments:**
+
+    - `system`: a `LinearSecondOrder`, or a `PerturbedSystem` (or an updated twin) with a
+      `nominal`.
+
+    **Returns:** the `LinearSecondOrder`.
+    """
     return system if isinstance(system, LinearSecondOrder) else system.nominal
 
 
@@ -569,13 +703,26 @@ def simulate_sde(
     *,
     substeps: int = 4,
 ) -> Float[Array, "N m"]:
-    """Sample the Ito SDE `dX = (f(X) + h(X)) dt + G dB` on a uniform grid `t (N,)` s.
+    """Sample the Ito SDE `dX = (f(X) + h(X)) dt + G dB` on a uniform grid.
 
-    The force is `B dB` with `B` the nominal input matrix and `B (n,)` a unit-intensity
-    Brownian motion, so `G = diffusion_matrix(nominal)` and the diffusion of velocity `i` is
-    `Gamma_ii = (G G^T)_ii`. Integrated with ShARK (strong order 1.5 for additive noise)
-    at `dt / substeps`; Euler-Maruyama at 1 ms doubles the variance of these oscillators.
-    Vmap over `key` for an ensemble. Returns `x (N, m)` with `x[0] = x0`.
+    The force is `B dB` with `B` the nominal input matrix and `dB` the increment of an
+    `n`-dimensional unit-intensity Brownian motion, so `G = diffusion_matrix(nominal)` and the
+    diffusion of velocity `i` is `Gamma_ii = (G G^T)_ii`; a system with its own `diffusion(x)`
+    (an output-only updated twin) uses that instead. Integrated with ShARK (strong order 1.5
+    for additive noise; GeneralShARK for a state-dependent diffusion) at `dt / substeps`;
+    Euler-Maruyama at 1 ms would inflate the variance of these oscillators. Vmap over `key`
+    for an ensemble.
+
+    **Arguments:**
+
+    - `system`: a `PerturbedSystem` or `LinearSecondOrder` (or an updated twin); its input is
+      zero, the forcing Brownian.
+    - `x0`: the initial state `(m,)` at `t[0]`.
+    - `t`: uniform sample times `(N,)`, s, `N >= 2`.
+    - `key`: JAX PRNG key of the Brownian path.
+    - `substeps`: solver steps per sample interval (default 4).
+
+    **Returns:** the states `x (N, m)` at the times `t`, with `x[0] = x0`.
     """
     t, x0 = _check_sde(t, x0)
     return _solve_sde(system, x0, t, key, substeps, None, True)[1]
@@ -591,9 +738,25 @@ def simulate_sde_checked(
     *,
     substeps: int = 4,
 ) -> tuple[Float[Array, "N m"], Array, Array]:
-    """:func:`simulate_sde` that stops when a state leaves `[lower, upper] (m,)` or is
-    non-finite, as :func:`simulate_checked`: returns `x (N, m)` (inf after the stop),
-    `status` and `stop_time` (s)."""
+    """`simulate_sde` that stops when a state leaves its bounds or is non-finite.
+
+    As `simulate_checked`: a diffrax `Event` ends the solve, and a failure returns rather than
+    raises.
+
+    **Arguments:**
+
+    - `system`: the system, as in `simulate_sde`.
+    - `x0`: the initial state `(m,)` at `t[0]`.
+    - `t`: uniform sample times `(N,)`, s, `N >= 2`.
+    - `key`: JAX PRNG key of the Brownian path.
+    - `lower`: the lower bound `(m,)` of every state, its units.
+    - `upper`: the upper bound `(m,)` of every state, its units.
+    - `substeps`: solver steps per sample interval (default 4).
+
+    **Returns:** `(x, status, stop_time)`: the states `(N, m)` (inf after the stop); `status`,
+    a scalar integer code (`OK`, `DIVERGED`, `MAX_STEPS` or `FAILED`); and `stop_time`, the
+    time (s, on the clock of `t`) the solve reached.
+    """
     t, x0 = _check_sde(t, x0)
     event = diffrax.Event(lambda s, y, args, **kw: _outside(s, y, args, lower=lower, upper=upper))
     sol, x = _solve_sde(system, x0, t, key, substeps, event, False)
@@ -645,8 +808,16 @@ class Example(NamedTuple):
         return {nominal.state_names[i]: float(gamma[i]) for i in nominal.velocity_index}
 
     def true_coefficients(self, names) -> np.ndarray:
-        """`(r, K)` coefficients of the true perturbation in a library with term `names`
-        (one row per regressed state)."""
+        """Coefficients of the true perturbation in a library, one row per regressed state.
+
+        **Arguments:**
+
+        - `names`: the library's `K` term names, in sympy's `str` form (as
+          `library.parse_library` names them); every true term must be among them.
+
+        **Returns:** the coefficients `(r, K)`, `r` the number of regressed states, each in the
+        units of that state's rate; zero for a term the truth does not have.
+        """
         nominal = self.system.nominal
         names = list(names)
         coef = np.zeros((len(nominal.regressed_index), len(names)))
@@ -760,7 +931,7 @@ def example2() -> Example:
 
 
 def example3() -> Example:
-    """Crack degradation (paper Eq. 27): stiffness k*lambda(q) with damage q' > 0."""
+    """Crack degradation (paper Eq. 27): stiffness `k*lambda(q)` with damage `q' > 0`."""
     mass, c, k, sigma = 1.0, 2.0, 2000.0, 1.0
     a1, a2, a3, a4, beta, gamma = 0.5, 0.5, 1.0, 1.0, 2.0, 0.01
     nominal = LinearSecondOrder.create([[mass]], [[c]], [[k]], [[sigma]], extra_states=1)
@@ -814,7 +985,17 @@ def simulate_example(
     """Simulate an example under white Gaussian input held over each sample.
 
     `N = round(duration / dt)` samples from `t = 0`; `u ~ N(0, input_std^2)` iid.
-    Returns `{"t": (N,), "x": (N, m), "xdot": (N, m), "u": (N, n)}`.
+
+    **Arguments:**
+
+    - `example`: the `Example`.
+    - `key`: JAX PRNG key of the input.
+    - `duration`: the record's length, s; None (default) for `example.duration`.
+    - `dt`: the sample interval, s; None (default) for `example.dt`.
+    - `x0`: the initial state `(m,)`; None (default) for `example.x0`.
+
+    **Returns:** `{"t": (N,), "x": (N, m), "xdot": (N, m), "u": (N, n)}`: times (s), states,
+    their rates (as `simulate`) and the inputs.
     """
     duration = example.duration if duration is None else duration
     dt = example.dt if dt is None else dt
@@ -839,14 +1020,26 @@ def simulate_example_sde(
     substeps: int = 4,
     accelerations: bool = False,
 ) -> dict[str, Array]:
-    """Framework 2: an ensemble of `R = num_records` independent records of the example
-    driven by Brownian forcing (`simulate_sde`), all from `example.x0`.
+    """Framework 2: independent records of an example driven by Brownian forcing.
 
-    Returns `{"t": (N,), "x": (R, N, m)}`; with `accelerations`, also `"xdot": (R, N, d)`,
-    what an accelerometer averaging over each sample's interval measures (the change of each
-    velocity from half a step before the sample to half a step after it, over `dt`; the force
-    is white, so its acceleration has no value at an instant). The records then start half a
-    step after `example.x0`.
+    `R = num_records` records, all from `example.x0`, simulated by `simulate_sde` on
+    `N = round(duration / dt) + 1` samples from `t = 0`.
+
+    **Arguments:**
+
+    - `example`: the `Example`.
+    - `key`: JAX PRNG key; split into one Brownian path per record.
+    - `num_records`: `R`, the number of records (default 1).
+    - `duration`: the record's length, s; None (default) for `example.duration`.
+    - `dt`: the sample interval, s; None (default) for `example.dt`.
+    - `substeps`: solver steps per sample interval (default 4).
+    - `accelerations`: also return what an accelerometer averaging over each sample's
+      interval measures (the change of each velocity from half a step before the sample to
+      half a step after it, over `dt`; the force is white, so its acceleration has no value
+      at an instant). The records then start half a step after `example.x0`.
+
+    **Returns:** `{"t": (N,), "x": (R, N, m)}`, times (s) and states; with `accelerations`,
+    also `"xdot": (R, N, d)`, the averaged accelerations of the velocity states.
     """
     duration = example.duration if duration is None else duration
     dt = example.dt if dt is None else dt

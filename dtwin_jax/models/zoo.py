@@ -44,8 +44,7 @@ per family; `s` is the nominal stationary RMS displacement, `s_v` the velocity's
   force dwarfs it, so a ratio to it would not be identifiable);
 * Coulomb friction (`coulomb`, `chain-coulomb`): `F` is `r` times the per-sample standard
   deviation of the force, `B / sqrt(dt)`, `r ~ U(0.05, 0.125)`. Above ~0.125 the mass sticks
-  at a good share of its velocity reversals (measured: 2-4% of samples at 0.125, 15-20% at
-  0.3), and the sticking samples do not follow `sign(v)`.
+  at a good share of its velocity reversals, and the sticking samples do not follow `sign(v)`.
 
 Then **identifiability** is checked: a noise-free pilot simulation (`simulate_example`,
 key `seed`) gives the expected z-score `|theta| / se` of every true coefficient in a
@@ -53,9 +52,9 @@ least-squares fit on the true terms, `1`, the states and the inputs, with the ta
 of 5% noise on the measured accelerations and inputs (`expected_z`). While the smallest is
 below `Z_MIN = 8` the ratio is scaled up (to at most 1.0, or the stability or sticking cap),
 and when the cap is reached, or the pilot's solver fails, the nominal model is redrawn. So
-cubic-softening members (z about 0.5-6 at the stability cap for a typical nominal model)
+cubic-softening members (below `Z_MIN` at the stability cap for a typical nominal model)
 lean to lightly damped, stiff nominal models. The z-score on the whole library
-(`Member.z_full`, in the description) is much lower, often below 2: telling `x1**3` from
+(`Member.z_full`, in the description) is much lower: telling `x1**3` from
 `x1*Abs(x1)` or `x2*Abs(x2)` from `x2**3` in 1 s is the hard part, and is what the zoo
 measures, not what it screens for.
 
@@ -63,9 +62,9 @@ measures, not what it screens for.
 `systems.simulate` grind to a halt when the mass sticks (a sliding mode: the step shrinks to
 the tolerance and stays there), so the simulated friction is `F tanh(v / w)` with the
 slip width `w = (F / m) * FRICTION_TIME` (0.25 ms, so ShARK's 0.25 ms SDE steps are stable):
-`w` is below 1.5% of the RMS velocity, and `tanh(v / w)` differs from `sign(v)` only on the
-few samples within a few `w` of zero velocity (measured: 0.1-4% of samples, most when stuck),
-where a physical friction balances the applied force rather than following `sign(v)`.
+`w` is a small fraction of the RMS velocity, and `tanh(v / w)` differs from `sign(v)` only on
+the few samples within a few `w` of zero velocity (most of them when stuck), where a physical
+friction balances the applied force rather than following `sign(v)`.
 
 All SDOF families share one perturbation function (`sdof_perturbation`, every force
 coefficient in `params`, zeros for the absent ones) and both chain families another
@@ -164,11 +163,20 @@ _SDOF_FAMILY_FORCE = {
 
 
 def sdof_perturbation(x, u, params):
-    """Extra rate `(2,)` of an SDOF member at `x = [q, v] (2,)`: `-force / mass`.
+    """Extra rate of an SDOF member at one state: `-force / mass`.
 
-    `params`: `mass` and the force coefficients `cubic` (q^3), `square` (q^2), `abs`
-    (q|q|), `friction` (tanh(v / friction_width), Coulomb), `drag` (v|v|),
-    `cubic_damping` (v^3), `amplitude` (q^2 v); all 0-d arrays, SI units.
+    The force sums every family's term, each with its coefficient in `params` (zero for the
+    absent ones), so all SDOF members share this one function.
+
+    **Arguments:**
+
+    - `x`: the state `[q, v]`, shape `(2,)`, m and m/s.
+    - `u`: the input (unused).
+    - `params`: a dict of 0-d arrays, SI units: `mass` kg and the force coefficients `cubic`
+      (q^3), `square` (q^2), `abs` (q|q|), `friction` (`tanh(v / friction_width)`, Coulomb),
+      `drag` (v|v|), `cubic_damping` (v^3), `amplitude` (q^2 v), and `friction_width` m/s.
+
+    **Returns:** the extra rate `(2,)`: 0 for `q`, `-force / mass` (m/s^2) for `v`.
     """
     q, v = x[0], x[1]
     p = params
@@ -185,10 +193,18 @@ def sdof_perturbation(x, u, params):
 
 
 def chain_perturbation(x, u, params):
-    """Extra rate `(4,)` of a 2-DOF chain member at `x = [q1, q2, v1, v2]`.
+    """Extra rate of a 2-DOF chain member at one state: `-force / mass` on each mass.
 
-    `params`: `mass (2,)`, `coupling` (force `a (q1 - q2)^3` on mass 1, its opposite on
-    mass 2), `friction (2,)` and `friction_width (2,)` (Coulomb `F_j tanh(v_j / w_j)`).
+    **Arguments:**
+
+    - `x`: the state `[q1, q2, v1, v2]`, shape `(4,)`, m and m/s.
+    - `u`: the input (unused).
+    - `params`: a dict of arrays, SI units: `mass (2,)` kg, `coupling` (force
+      `a (q1 - q2)^3` on mass 1, its opposite on mass 2), `friction (2,)` N and
+      `friction_width (2,)` m/s (Coulomb `F_j tanh(v_j / w_j)`).
+
+    **Returns:** the extra rate `(4,)`: 0 for the displacements, `-force / mass` (m/s^2) for
+    the velocities.
     """
     q, v = x[:2], x[2:4]
     p = params
@@ -209,8 +225,17 @@ class _Nominal(NamedTuple):
 
 
 def stationary_covariance(nominal: systems.LinearSecondOrder) -> np.ndarray:
-    """`P (m, m)` with `A P + P A^T + G G^T = 0`: the stationary state covariance of the
-    nominal model under the Brownian force `B dB` (`G = diffusion_matrix(nominal)`)."""
+    """The stationary state covariance of a nominal model under the Brownian force `B dB`.
+
+    `P` solves the Lyapunov equation `A P + P A^T + G G^T = 0`, with
+    `G = diffusion_matrix(nominal)`.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model (stable, so that `P` exists).
+
+    **Returns:** `P`, shape `(m, m)`, in the states' units squared.
+    """
     A = np.asarray(state_matrix(nominal))
     G = np.asarray(systems.diffusion_matrix(nominal))
     return scipy.linalg.solve_continuous_lyapunov(A, -G @ G.T)
@@ -392,15 +417,26 @@ def _example(name, system, nominal: _Nominal, true_terms) -> systems.Example:
 def expected_z(
     example: systems.Example, key, level: float = PILOT_NOISE, *, full: bool = False
 ) -> dict[str, dict[str, float]]:
-    """Expected z-score `|theta| / se` of every true coefficient, `{state: {term: z}}`.
+    """Expected z-score `|theta| / se` of every true coefficient.
 
     From one noise-free input-output simulation (`simulate_example(example, key)`): the
-    standard error of a least-squares fit, with the target noise of `level` (fraction of
-    each signal's std) on the measured rates and inputs; the input noise enters the target
-    through the removed nominal `M^-1 B u`. The fit's columns are the true terms, `1`, the
-    states and the inputs (is the term detectable above the noise and the linear terms?),
-    or with `full` the whole `example.library` (can it also be told from every look-alike,
-    e.g. `x1**3` from `x1*Abs(x1)`?). Non-finite simulation: 0.
+    standard error of a least-squares fit, with the target noise of `level` on the measured
+    rates and inputs; the input noise enters the target through the removed nominal
+    `M^-1 B u`. The fit's columns are the true terms, `1`, the states and the inputs (is the
+    term detectable above the noise and the linear terms?), or with `full` the whole
+    `example.library` (can it also be told from every look-alike, e.g. `x1**3` from
+    `x1*Abs(x1)`?). Non-finite simulation: 0.
+
+    **Arguments:**
+
+    - `example`: the `systems.Example` (a zoo member's).
+    - `key`: JAX PRNG key of the simulation's input.
+    - `level`: measurement noise std as a fraction of each signal's std (default
+      `PILOT_NOISE`, 0.05).
+    - `full`: fit on the whole library instead of the true terms, `1`, the states and the
+      inputs (default False).
+
+    **Returns:** `{state: {term: z}}` for every true term, dimensionless.
     """
     return _z_scores(example, systems.simulate_example(example, key), level, full)
 
@@ -467,7 +503,14 @@ class Member(NamedTuple):
 
 
 def noise_level(seed: int) -> float:
-    """Measurement noise level of member `seed`, uniform in `NOISE_RANGE` (2-5%)."""
+    """Measurement noise level of member `seed`, uniform in `NOISE_RANGE` (2-5%).
+
+    **Arguments:**
+
+    - `seed`: the member's seed.
+
+    **Returns:** the noise std as a fraction of each signal's std.
+    """
     return float(np.random.default_rng([seed, _NOISE_STREAM]).uniform(*NOISE_RANGE))
 
 
@@ -486,10 +529,19 @@ def _build(family, size, nominal, name):
 
 
 def draw_member(seed: int, family: str | None = None) -> Member:
-    """Draw member `seed` of `family` (None: `FAMILIES[seed % len(FAMILIES)]`).
+    """Draw member `seed` of `family`.
 
     Deterministic in `(seed, family)`. Redraws the magnitude up to its cap, then the
-    nominal model, until every true coefficient has an expected z-score >= `Z_MIN`.
+    nominal model, until every true coefficient has an expected z-score >= `Z_MIN`; raises
+    `RuntimeError` when no nominal model in 300 draws gives one.
+
+    **Arguments:**
+
+    - `seed`: the member's seed, a non-negative integer.
+    - `family`: one of `FAMILIES`, or None (default) for `FAMILIES[seed % len(FAMILIES)]`;
+      another name raises `ValueError`.
+
+    **Returns:** the `Member`: its `systems.Example` and the numbers it was drawn with.
     """
     family = _family_of(seed, family)
     rng = np.random.default_rng([seed, FAMILIES.index(family)])
@@ -527,22 +579,51 @@ def _finish(example, family, seed, size, law, nominal, pilot) -> Member:
 
 
 def draw(seed: int, family: str | None = None) -> systems.Example:
-    """The `Example` of `draw_member(seed, family)`."""
+    """The `Example` of `draw_member(seed, family)`.
+
+    **Arguments:**
+
+    - `seed`: the member's seed.
+    - `family`: one of `FAMILIES`, or None (default) for `FAMILIES[seed % len(FAMILIES)]`.
+
+    **Returns:** the member's `systems.Example`.
+    """
     return draw_member(seed, family).example
 
 
 def members(num: int, seed: int = 0) -> list[systems.Example]:
-    """`num` members with seeds `seed, seed + 1, ...`; the family cycles with the seed, so
-    any `len(FAMILIES)` consecutive members hold every family once."""
+    """`num` members with consecutive seeds, every family in turn.
+
+    The family cycles with the seed, so any `len(FAMILIES)` consecutive members hold every
+    family once.
+
+    **Arguments:**
+
+    - `num`: the number of members.
+    - `seed`: the first seed (default 0); the others are `seed + 1, seed + 2, ...`.
+
+    **Returns:** the members' `systems.Example`s, a list of `num`.
+    """
     return [draw(seed + i) for i in range(num)]
 
 
 def drag_and_coulomb(seed: int, friction_ratio: float = 0.08, level: float = 0.02) -> Member:
-    """A near-equivalent member: a ``quadratic-drag`` member (``draw_member(seed,
-    "quadratic-drag")``) with Coulomb friction added, its force ``friction_ratio`` of the
-    per-sample force std ``B / sqrt(dt)`` (the coulomb family's rule), measured at ``level``.
-    Over the measured velocity range ``x2*Abs(x2) + sign(x2)`` and ``x2 + x2**3 + sign(x2)``
-    are close (issue 26 item 2; ``benchmarks/ambiguity.py``)."""
+    """A near-equivalent member: a `quadratic-drag` member with Coulomb friction added.
+
+    The member is `draw_member(seed, "quadratic-drag")` plus Coulomb friction by the coulomb
+    family's rule. Over the measured velocity range `x2*Abs(x2) + sign(x2)` and
+    `x2 + x2**3 + sign(x2)` are close (issue 26 item 2; `benchmarks/ambiguity.py`).
+
+    **Arguments:**
+
+    - `seed`: the seed of the quadratic-drag member.
+    - `friction_ratio`: the friction force as a fraction of the per-sample force std
+      `B / sqrt(dt)` (default 0.08).
+    - `level`: the measurement noise level, a fraction of each signal's std (default 0.02).
+
+    **Returns:** the `Member`, family `"drag+coulomb"`, with `sign(x2)` added to its true
+    terms and `noise_level` set to `level`.
+    """
     import jax.numpy as jnp
 
     member = draw_member(seed, "quadratic-drag")

@@ -14,8 +14,7 @@ Columns are scaled to the window's unit diagonal first, so ranks do not depend o
 The test compares the window with the twin's *data*, not with its spike-and-slab posterior:
 a posterior leaves out a small term that its data support only weakly, and its mean is shrunk
 there; windows pooled over a minute then show that term against the posterior, though it was in
-the twin's data all along (output-only zoo lives, 10 s windows: 9 false alarms in 190 windows
-at a rate of 1e-3 against the posterior).
+the twin's data all along, and a test against the posterior raises false alarms.
 
 Where the states were estimated (accelerometers alone), each window's states carry their own
 error, correlated over the whole window: it moves the window's score by an amount the rows'
@@ -25,7 +24,7 @@ over draws of that error, and the test adds it to `V`.
 Real windows' rows are not independent (smoothed states; a model that misses part of the
 physics the same way in every window), so `V` can understate the score's spread by a factor
 that each structure's own windows measure: `T` averages 1 over windows that follow the twin
-when `V` is right. :func:`overdispersion` estimates it (at least 1) and the tests use `V`
+when `V` is right. `overdispersion` estimates it (at least 1) and the tests use `V`
 times it.
 
 A change that one term carries (a new term) is seen with fewer windows by the score of each
@@ -72,9 +71,21 @@ class ChangeTest(NamedTuple):
 
 
 def window_statistics(after, before, forget: float) -> SuffStats:
-    """The drift statistics of the window alone, from a re-update: `after = window + forget
-    * before` (:func:`dtwin_jax.update.lifecycle.with_previous`), so `window = after - forget
-    * before` (exact to rounding)."""
+    """The drift statistics of the window alone, from a re-update.
+
+    The re-update holds `after = window + forget * before`
+    (`dtwin_jax.update.lifecycle.with_previous`), so `window = after - forget * before` (exact to
+    rounding).
+
+    **Arguments:**
+
+    - `after`: the `UpdateResult` of the re-update with the window (the twin before it as `previous`).
+    - `before`: the twin's `UpdateResult` before the window.
+    - `forget`: the weight, in [0, 1], that the re-update gave the older data.
+
+    **Returns:** the window's own drift statistics, a `SuffStats` of float64 NumPy arrays batched over
+    the `q` drift equations: `gram (q, K, K)`, `xty (q, K)`, `yty (q,)`, `n (q,)`.
+    """
     new, old = after.statistics["drift"], before.statistics["drift"]
     return SuffStats(*(np.asarray(a, dtype=float) - forget * np.asarray(b, dtype=float) for a, b in zip(new, old)))
 
@@ -133,12 +144,20 @@ def _one(gram0, xty0, yty0, n0, gram1, xty1, yty1, n1, spread, dispersion, linea
 
 
 def overdispersion(ratio_sum, count):
-    """The factor on `V` that a structure's own windows call for: the mean of `T` (unscaled)
-    over its windows that followed the twin, with :data:`PRIOR_WINDOWS` pseudo-windows at 1,
-    and at least 1. Rows that are not independent (smoothed states, a model that misses part
-    of the physics in the same way window after window) spread the score more than `V` says;
-    `T` has mean about 1 where they do not. `ratio_sum`, `count`: `(q,)` sums of `T` and
-    their number."""
+    """The factor on `V` that a structure's own windows call for.
+
+    The mean of `T` (unscaled) over its windows that followed the twin, with `PRIOR_WINDOWS`
+    pseudo-windows at 1, and at least 1. Rows that are not independent (smoothed states, a model
+    that misses part of the physics in the same way window after window) spread the score more
+    than `V` says; `T` has mean about 1 where they do not.
+
+    **Arguments:**
+
+    - `ratio_sum`: `(q,)` sums of the unscaled `T` over those windows, per drift equation.
+    - `count`: `(q,)` their number.
+
+    **Returns:** the factor `(q,)` (a JAX array), at least 1.
+    """
     return jnp.maximum(1.0, (PRIOR_WINDOWS + jnp.asarray(ratio_sum)) / (PRIOR_WINDOWS + jnp.asarray(count)))
 
 
@@ -151,15 +170,15 @@ def window_test(twin: SuffStats, window: SuffStats, dispersion=1.0, spread=0.0, 
     - `twin`: the twin's drift statistics before the window (`gram (q, K, K)`, `xty (q, K)`,
       `yty (q,)`, `n (q,)`; older windows discounted as the twin discounts them).
     - `window`: the window's own statistics, batched over the same `q` equations.
-    - `dispersion`: `()` or `(q,)`, the factor on `V` (:func:`overdispersion`); the returned
+    - `dispersion`: `()` or `(q,)`, the factor on `V` (`overdispersion`); the returned
       `statistic` is `T` divided by it.
     - `spread`: `(q, K, K)` (or 0): the covariance `Omega` of the window's score `b1 - G1 c`
       over draws of its states' estimation error, when its states were estimated
-      (:func:`dtwin_jax.output_only.accelerometers.score_spread`); added to `V`.
+      (`dtwin_jax.output_only.accelerometers.score_spread`); added to `V`.
     - `linear`: `(q, K)` or `(K,)` bool (or False): the columns of the nominal model's linear
-      terms, every displacement and velocity (:func:`linear_columns`), tested together as well.
+      terms, every displacement and velocity (`linear_columns`), tested together as well.
 
-    **Returns:** a :class:`ChangeTest`; under "the window follows the twin's linear model"
+    **Returns:** a `ChangeTest` of `(q,)` arrays; under "the window follows the twin's linear model"
     `p_all` is uniform on (0, 1), and `p_term` and `p_value` are at least as large as a
     uniform. A twin with no data (all zeros) gives `df = 0` and p-values of 1.
     """
@@ -172,7 +191,17 @@ def window_test(twin: SuffStats, window: SuffStats, dispersion=1.0, spread=0.0, 
 
 
 def linear_columns(names, nominal) -> np.ndarray:
-    """`(K,)` bool: which of the library's term `names` are the nominal model's linear terms
-    (`x1 .. x2d`, every displacement and velocity)."""
+    """Which of the library's terms are the nominal model's linear terms.
+
+    The linear terms are `x1 .. x2d`, every displacement and velocity (the nominal's first `2 d`
+    state names).
+
+    **Arguments:**
+
+    - `names`: the library's term names, `K` of them.
+    - `nominal`: the nominal model (a `LinearSecondOrder`: its `state_names` and `d`).
+
+    **Returns:** `(K,)` bool, True for the linear terms.
+    """
     linear = set(nominal.state_names[:2 * nominal.d])
     return np.array([name in linear for name in names], dtype=bool)

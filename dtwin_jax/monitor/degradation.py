@@ -1,19 +1,19 @@
 """Degradation over service time: a coefficient's trend across a monitor's windows,
 extrapolated with its uncertainty to a critical level, gives the remaining useful life.
 
-Each window's own estimate of the coefficient (``window_estimates`` in the timeline:
+Each window's own estimate of the coefficient (`window_estimates` in the timeline:
 least squares on that window alone, so independent from window to window) is one point
-``c_w +- s_w`` at service time ``t_w``. A straight line ``c(t) = a + b t`` is fitted by
-weighted least squares; the standard errors' common scale ``phi`` is unknown (a model that
-fits worse than its noise), with a scaled-inverse-chi-square posterior that ``PRIOR_DOF``
+`c_w +- s_w` at service time `t_w`. A straight line `c(t) = a + b t` is fitted by
+weighted least squares; the standard errors' common scale `phi` is unknown (a model that
+fits worse than its noise), with a scaled-inverse-chi-square posterior that `PRIOR_DOF`
 pseudo-windows pull towards 1, truncated at 1: a window's own standard error is a floor (its
-residuals are taken as white), and a scatter smaller than it is chance, not precision. Draws of ``(phi, a, b)`` give
+residuals are taken as white), and a scatter smaller than it is chance, not precision. Draws of `(phi, a, b)` give
 draws of the time the line reaches the critical level; the remaining life is that time less
 now (zero once past it, infinite where the line heads away from the level).
 
 A structure whose damage grows with a random loading (a crack) does not follow a line: its
 loss is a drift plus a random walk, and the time it reaches the level depends on the loads
-to come. ``trend="wiener"`` fits that walk to the track (a Wiener process with drift seen
+to come. `trend="wiener"` fits that walk to the track (a Wiener process with drift seen
 through the windows' errors) and draws the failure time from its first passage (inverse
 Gaussian), so the interval holds the future loads' spread as well as the fit's.
 """
@@ -36,13 +36,16 @@ def coefficient_track(timeline: list[dict], term: str) -> dict:
 
     **Arguments:**
 
-    - ``timeline``: :attr:`Monitor.timeline <dtwin_jax.monitor.Monitor.timeline>` (or the
-      ``windows`` of a ``MONITOR.json``).
-    - ``term``: ``"state:term"``, like ``"x2:x1"`` (the stiffness of an SDOF, in
-      acceleration units: ``-K / M`` is the nominal's share, this the perturbation's).
+    - `timeline`: the monitor's window entries, `Monitor.timeline`
+      (`dtwin_jax.monitor.Monitor.timeline`), or the `windows` of a `MONITOR.json`.
+    - `term`: `"state:term"`, like `"x2:x1"` (the stiffness of an SDOF, in
+      acceleration units: `-K / M` is the nominal's share, this the perturbation's); terms are
+      named as in the library, states `x1 .. xm`.
 
-    **Returns:** ``t`` (the windows' ``t_start``, s), ``mean`` and ``sd`` ``(W,)`` over the
-    windows that estimated it, and ``index`` (their timeline indices).
+    **Returns:** a dict: `t` (the windows' `t_start`, s), `mean` and `sd` (the estimates and
+    their standard errors, the coefficient's units), each `(W,)` over the `W` windows that
+    estimated it, and `index` `(W,)` int (their timeline indices). Raises `DataError` where
+    `term` is not `"state:term"` or no window estimated it.
     """
     state, sep, expr = term.partition(":")
     if not sep:
@@ -69,34 +72,41 @@ _WALK_GRID = np.geomspace(1e-3, 1e4, 36)
 
 
 def _walk_log_prior(r):
-    """Flat in the walk's standard deviation over the grid, on ``log r``: a tail towards
+    """Flat in the walk's standard deviation over the grid, on `log r`: a tail towards
     no walk would hide a walk that ~20 noisy windows cannot tell from white scatter."""
     return 0.5 * np.log(r)
 
 
 def remaining_life(t, mean, sd, critical: float, *, now: float | None = None, level: float = 0.9,
                    trend: str = "linear", num_draws: int = 20000, seed: int = 0) -> dict:
-    """When a coefficient's trend reaches ``critical``, with its uncertainty.
+    """When a coefficient's trend reaches `critical`, with its uncertainty.
 
     **Arguments:**
 
-    - ``t``, ``mean``, ``sd``: ``(W,)`` service times (s) and the window-alone estimates
-      with their standard errors (:func:`coefficient_track`); at least 3 windows.
-    - ``critical``: the level at which the structure has failed (same units).
-    - ``now``: the service time the remaining life counts from (default the last window's).
-    - ``level``: the probability of the interval (default 0.9).
-    - ``trend``: ``"linear"`` (a straight line), ``"quadratic"`` (a loss that speeds up or
-      slows down: wider intervals, from the curvature's uncertainty) or ``"wiener"`` (a
+    - `t`: `(W,)` the windows' service times, s (`coefficient_track`'s `t`); at least 3
+      windows (4 for a `"quadratic"` trend).
+    - `mean`: `(W,)` the window-alone estimates of the coefficient (`coefficient_track`).
+    - `sd`: `(W,)` their standard errors, positive (same units).
+    - `critical`: the level at which the structure has failed (same units).
+    - `now`: the service time, s, the remaining life counts from; None (default): the last
+      window's.
+    - `level`: the probability of the interval (default 0.9).
+    - `trend`: `"linear"` (a straight line), `"quadratic"` (a loss that speeds up or
+      slows down: wider intervals, from the curvature's uncertainty) or `"wiener"` (a
       straight drift plus a random walk, the degradation of a structure whose damage grows
       with a random loading, as a crack's does: the walk's variance is fitted to the track
       and the failure time is the walk's first passage, inverse Gaussian given the fit).
-    - ``num_draws``, ``seed``: Monte Carlo draws of the trend.
+    - `num_draws`: the number of Monte Carlo draws of the trend (default 20000).
+    - `seed`: the seed of the draws' random generator (default 0).
 
-    **Returns:** ``failure_time`` (the draws, s; ``inf`` where the trend heads away),
-    ``median``, ``lower``, ``upper`` (the failure time's quantiles at ``(1 - level) / 2``, 0.5
-    and ``(1 + level) / 2``), ``rul_median``, ``rul_lower``, ``rul_upper`` (the same less ``now``, at least
-    0), ``slope`` and ``slope_sd`` (per s, now), ``scale`` (the posterior mean of ``phi``, at least
-    1) and the fitted ``line`` (its coefficients in powers of ``t - now``: ``(a, b)`` or ``(a, b, c)``).
+    **Returns:** a dict: `failure_time` (`(num_draws,)` draws, s; `inf` where the trend heads away),
+    `median`, `lower`, `upper` (the failure time's quantiles at `(1 - level) / 2`, 0.5
+    and `(1 + level) / 2`), `rul_median`, `rul_lower`, `rul_upper` (the same less `now`, at least
+    0), `slope` and `slope_sd` (per s, now), `scale` (the posterior mean of `phi`, at least
+    1) and the fitted `line` (its coefficients in powers of `t - now`: `(a, b)` or `(a, b, c)`),
+    with `diffusion` (the walk's variance per s, posterior mean) for `"wiener"`, and `now`, `critical`
+    and `trend` as given. Raises `DataError` on an unknown trend, too few windows, a level
+    outside (0, 1) or non-finite data.
     """
     if trend not in TRENDS:
         raise DataError(f"unknown trend {trend!r}; expected one of {', '.join(TRENDS)}")
@@ -142,15 +152,15 @@ def _summary(failure, now, level, critical, trend, **fit) -> dict:
 
 
 def _wiener_life(t, mean, sd, critical, now, level, num_draws, rng) -> dict:
-    """The ``"wiener"`` trend: ``c(t) = a + b s + sigma B(s)`` (``s = t - t_0``, ``B`` a standard
-    Brownian motion) seen as ``mean = c(t) + e``, ``e ~ N(0, phi sd^2)`` independent.
+    """The `"wiener"` trend: `c(t) = a + b s + sigma B(s)` (`s = t - t_0`, `B` a standard
+    Brownian motion) seen as `mean = c(t) + e`, `e ~ N(0, phi sd^2)` independent.
 
-    ``(a, b)`` have a flat prior and are integrated out (restricted likelihood); ``(sigma^2,
-    phi)`` are weighed on a grid (``sigma`` flat over the walk's share of the track, from 1e-3
-    to 1e4 windows' variances; ``phi`` as in the straight line). Each draw takes a grid point,
-    ``(a, b)`` from their Gaussian posterior, the walk's value now given the windows, and the
-    first passage from there to ``critical``: inverse Gaussian, mean ``D / b``, shape
-    ``D^2 / sigma^2`` for the distance ``D`` (defective when the drift heads away).
+    `(a, b)` have a flat prior and are integrated out (restricted likelihood); `(sigma^2,
+    phi)` are weighed on a grid (`sigma` flat over the walk's share of the track, from 1e-3
+    to 1e4 windows' variances; `phi` as in the straight line). Each draw takes a grid point,
+    `(a, b)` from their Gaussian posterior, the walk's value now given the windows, and the
+    first passage from there to `critical`: inverse Gaussian, mean `D / b`, shape
+    `D^2 / sigma^2` for the distance `D` (defective when the drift heads away).
     """
     s = t - t[0]
     s_now = now - t[0]
@@ -170,7 +180,7 @@ def _wiener_life(t, mean, sd, critical, now, level, num_draws, rng) -> dict:
 
 
 def _wiener_grid(s, s_now, mean, sd, log_prior_phi):
-    """Every (walk, phi) grid point of the Wiener trend at times ``s (W,)`` from the first
+    """Every (walk, phi) grid point of the Wiener trend at times `s (W,)` from the first
     window: log prior + restricted likelihood, and what the draws need, batched over the grid."""
     X = np.stack([np.ones_like(s), s], axis=1)
     # Sigma = s2 min(s_i, s_j) + phi diag(sd^2) = D^1/2 U (s2 lam + phi) U^T D^1/2 for every grid
@@ -196,8 +206,8 @@ def _wiener_grid(s, s_now, mean, sd, log_prior_phi):
 
 
 def _first_passage(distance, drift, s2, rng) -> np.ndarray:
-    """Draws of the time a Brownian motion with ``drift (n,)`` and variance ``s2 (n,) > 0`` per
-    unit time first covers ``distance (n,)`` (0 where already covered, ``inf`` where never)."""
+    """Draws of the time a Brownian motion with `drift (n,)` and variance `s2 (n,) > 0` per
+    unit time first covers `distance (n,)` (0 where already covered, `inf` where never)."""
     D = np.maximum(distance, 0.0)
     speed = np.abs(drift)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -211,8 +221,8 @@ def _first_passage(distance, drift, s2, rng) -> np.ndarray:
 
 
 def _first_crossing(line, critical: float) -> np.ndarray:
-    """The first ``tau > 0`` where ``sum_p line[:, p] tau^p`` reaches ``critical`` (``inf``
-    where it never does), for lines of degree 1 or 2 ``(draws, 2 or 3)``."""
+    """The first `tau > 0` where `sum_p line[:, p] tau^p` reaches `critical` (`inf`
+    where it never does), for lines of degree 1 or 2 `(draws, 2 or 3)`."""
     a, b = line[:, 0] - critical, line[:, 1]
     with np.errstate(divide="ignore", invalid="ignore"):
         if line.shape[1] == 2:

@@ -1,16 +1,16 @@
 """Fleets: many structures' windows tested and absorbed by one compiled program, sharded
 over the devices (and hosts) that JAX sees.
 
-Each structure of a fleet is monitored as :class:`~dtwin_jax.monitor.Monitor` monitors one
+Each structure of a fleet is monitored as `monitor.Monitor` monitors one
 (the same score tests, the window alone and pooled with the last ones, the discounted update
 or the restart), on input-output windows with every state, its rate and the force measured: the
-jittable chain of :func:`dtwin_jax.input_output.targets.input_output_stats` (kinematic
+jittable chain of `dtwin_jax.input_output.targets.input_output_stats` (kinematic
 smoother, targets, statistics with the input-noise correction), then the Gibbs sampler on
-every equation. :func:`fleet_step` is a pure function of arrays, mapped over the structures
-(``jax.vmap`` on accelerators, ``lax.map`` on the CPU, as the sampler maps its chains);
-:func:`sharded_fleet_step` runs it under ``jax.shard_map`` with the fleet axis split over a
-``Mesh`` (one structure's numbers never leave its device: no communication). Across hosts,
-:func:`jax.distributed.initialize` first, then the same mesh over ``jax.devices()``.
+every equation. `fleet_step` is a pure function of arrays, mapped over the structures
+(`jax.vmap` on accelerators, `lax.map` on the CPU, as the sampler maps its chains);
+`sharded_fleet_step` runs it under `jax.shard_map` with the fleet axis split over a
+`Mesh` (one structure's numbers never leave its device: no communication). Across hosts,
+`jax.distributed.initialize` first, then the same mesh over `jax.devices()`.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ FLEET_AXIS = "fleet"
 
 
 class FleetState(NamedTuple):
-    """What a fleet of ``F`` structures carries from one window to the next (``P = LOOKBACK - 1``)."""
+    """What a fleet of `F` structures carries from one window to the next (`P = LOOKBACK - 1`)."""
 
     stats: SuffStats  # (F, q, K, K), (F, q, K), (F, q), (F, q): each twin's drift statistics
     recent_windows: SuffStats  # (F, P, q, ...): the last windows' statistics, newest first
@@ -58,7 +58,17 @@ class FleetReport(NamedTuple):
 
 
 def fleet_init(num_structures: int, num_equations: int, num_terms: int) -> FleetState:
-    """A fleet with no twins yet: each structure's first window is its baseline."""
+    """A fleet with no twins yet: each structure's first window is its baseline.
+
+    **Arguments:**
+
+    - `num_structures`: the fleet's size `F`.
+    - `num_equations`: the drift equations of each structure, `q`.
+    - `num_terms`: the library's terms per equation, `K`.
+
+    **Returns:** a `FleetState` of zero statistics (float64, with `P = LOOKBACK - 1` recent windows'
+    slots) and zero counts, every structure `fresh`.
+    """
     F, q, K, P = num_structures, num_equations, num_terms, LOOKBACK - 1
 
     def stats(*lead):
@@ -69,9 +79,9 @@ def fleet_init(num_structures: int, num_equations: int, num_terms: int) -> Fleet
 
 
 def _alarm_p(st: FleetState, window: SuffStats, dispersion, linear):
-    """:func:`~dtwin_jax.monitor.service.combined_p_value` of the pooled tests of one
-    structure (:func:`~dtwin_jax.monitor.service.pooled_tests`), jittable: ``(p, p_window,
-    the window's own unscaled T (q,))``."""
+    """`service.combined_p_value` of the pooled tests of one
+    structure (`service.pooled_tests`), jittable: `(p, p_window,
+    the window's own unscaled T (q,))`."""
     cums = jax.tree.map(lambda w, r: jnp.concatenate([w[None], w[None] + jnp.cumsum(r, axis=0)]), window,
                         st.recent_windows)
     twins = jax.tree.map(lambda b, r: jnp.concatenate([b[None], r]), st.stats, st.recent_twins)
@@ -89,18 +99,25 @@ def fleet_step(state: FleetState, x, u, xdot, nominal, keys, *, lib: Library, dt
 
     **Arguments:**
 
-    - ``state``: the :class:`FleetState` before the window.
-    - ``x``, ``xdot``: ``(F, N, m)`` measured states and rates; ``u``: ``(F, N, n)`` forces.
-    - ``nominal``: the structures' nominal models, a
-      :class:`~dtwin_jax.models.systems.LinearSecondOrder` whose arrays have a leading ``F``
-      axis (``jax.tree.map(lambda *a: jnp.stack(a), *models)``).
-    - ``keys``: ``(F,)`` PRNG keys (a structure's draws depend on its key only).
-    - ``lib``, ``dt`` (s), ``half_width``, ``settings``: static: the library, the sample
-      interval, the smoother's half width (:func:`~dtwin_jax.preprocess.denoise.auto_half_width`)
-      and the sampler's settings.
-    - ``forget``, ``false_alarm``: as :class:`~dtwin_jax.monitor.Monitor`'s.
+    - `state`: the `FleetState` before the window.
+    - `x`: `(F, N, m)` measured states.
+    - `u`: `(F, N, n)` measured forces.
+    - `xdot`: `(F, N, m)` measured rates of the states.
+    - `nominal`: the structures' nominal models, a
+      `models.systems.LinearSecondOrder` whose arrays have a leading `F`
+      axis (`jax.tree.map(lambda *a: jnp.stack(a), *models)`).
+    - `keys`: `(F,)` PRNG keys (a structure's draws depend on its key only).
+    - `lib`: static: the `Library` of the drift equations' terms.
+    - `dt`: static: the sample interval, s.
+    - `half_width`: static: the kinematic smoother's half width, in samples
+      (`preprocess.denoise.auto_half_width`).
+    - `settings`: static: the sampler's `SamplerSettings`.
+    - `forget`: the weight, in [0, 1], of the older windows' data at each update (default 0.9), as
+      `monitor.Monitor`'s.
+    - `false_alarm`: the false-alarm rate per window (default 1e-3), as `monitor.Monitor`'s.
 
-    **Returns:** ``(state after the window, FleetReport)``. Pure and jittable.
+    **Returns:** `(state, report)`: the `FleetState` after the window and the window's
+    `FleetReport`. Pure and jittable.
     """
 
     linear = linear_columns(lib.names, nominal)  # static: the same columns for every structure
@@ -130,17 +147,32 @@ def fleet_step(state: FleetState, x, u, xdot, nominal, keys, *, lib: Library, dt
 
 
 def fleet_mesh(devices=None) -> Mesh:
-    """A one-axis mesh (axis ``"fleet"``) over ``devices`` (default: every device JAX sees,
-    on every host after :func:`jax.distributed.initialize`)."""
+    """A one-axis mesh (axis `"fleet"`) over the devices.
+
+    **Arguments:**
+
+    - `devices`: the devices, or None (default) for every device JAX sees (`jax.devices()`),
+      on every host after `jax.distributed.initialize`.
+
+    **Returns:** the `Mesh`, its one axis `"fleet"`.
+    """
     return Mesh(np.asarray(jax.devices() if devices is None else devices), (FLEET_AXIS,))
 
 
 def sharded_fleet_step(mesh: Mesh, **static):
-    """:func:`fleet_step` with the fleet axis split over ``mesh`` (``jax.shard_map``), jitted;
-    ``static`` are its keyword arguments (``lib``, ``dt``, ``half_width``, ``settings``,
-    ``forget``, ``false_alarm``). The fleet's size must be a multiple of the mesh's. Returns
-    ``step(state, x, u, xdot, nominal, keys) -> (state, report)``; put the inputs on the mesh
-    with :func:`fleet_sharding` to avoid a transfer."""
+    """`fleet_step` with the fleet axis split over `mesh` (`jax.shard_map`), jitted.
+
+    The fleet's size must be a multiple of the mesh's.
+
+    **Arguments:**
+
+    - `mesh`: the `Mesh` (`fleet_mesh`) whose axis `"fleet"` splits the fleet.
+    - `**static`: `fleet_step`'s keyword arguments (`lib`, `dt`, `half_width`, `settings`,
+      `forget`, `false_alarm`).
+
+    **Returns:** the jitted `step(state, x, u, xdot, nominal, keys) -> (state, report)`; put the
+    inputs on the mesh with `fleet_sharding` (or `fleet_put`) to avoid a transfer.
+    """
     spec = PartitionSpec(FLEET_AXIS)
     body = functools.partial(fleet_step, **static)
     # check_vma off: the sampler's loops start from constants that the fleet axis never touches.
@@ -148,15 +180,31 @@ def sharded_fleet_step(mesh: Mesh, **static):
 
 
 def fleet_sharding(mesh: Mesh) -> NamedSharding:
-    """The sharding of an array whose leading axis is the fleet's."""
+    """The sharding of an array whose leading axis is the fleet's.
+
+    **Arguments:**
+
+    - `mesh`: the fleet's `Mesh` (`fleet_mesh`).
+
+    **Returns:** the `NamedSharding` that splits the leading axis over the mesh's `"fleet"` axis.
+    """
     return NamedSharding(mesh, PartitionSpec(FLEET_AXIS))
 
 
 def fleet_put(tree, mesh: Mesh):
-    """Every array of ``tree`` (leading axis the fleet's) as a global array on ``mesh``, built
-    from the rows this process's devices hold: the same call on every process after
-    :func:`jax.distributed.initialize` (each holds the whole input, or at least its rows).
-    PRNG keys stay keys; arrays already spread over the mesh (a step's output) pass as they are."""
+    """Every array of `tree` (leading axis the fleet's) as a global array on `mesh`.
+
+    Each global array is built from the rows this process's devices hold: the same call on every
+    process after `jax.distributed.initialize` (each holds the whole input, or at least its rows).
+    PRNG keys stay keys; arrays already spread over the mesh (a step's output) pass as they are.
+
+    **Arguments:**
+
+    - `tree`: a pytree of arrays (NumPy or JAX, PRNG keys included) whose leading axis is the fleet's.
+    - `mesh`: the fleet's `Mesh` (`fleet_mesh`).
+
+    **Returns:** the same tree of global `jax.Array`s, sharded by `fleet_sharding(mesh)`.
+    """
     sharding = fleet_sharding(mesh)
 
     def one(x):

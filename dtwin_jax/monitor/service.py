@@ -2,10 +2,10 @@
 structure in service").
 
 Each window is first tested against the twin as it stood before it
-(:func:`~dtwin_jax.monitor.change.window_test`; a change that persists also by the window
-pooled with up to four before it, :func:`pooled_tests`; false-alarm rate ``false_alarm``
+(`change.window_test`; a change that persists also by the window
+pooled with up to four before it, `pooled_tests`; false-alarm rate `false_alarm`
 per window), then absorbed: without an alarm the twin is re-updated with the older data
-discounted by ``forget``; after an alarm it restarts from the nominal prior on the window
+discounted by `forget`; after an alarm it restarts from the nominal prior on the window
 alone, and the alarm names its reasons (terms that appeared or disappeared, coefficients that
 left their 95% interval). Every window's entry rides in the twin's history, so the twin
 folder keeps the timeline, and a window whose data are already there is never absorbed
@@ -52,9 +52,16 @@ LOOKBACK = MAX_RECENT + 1
 
 
 def recent_windows(result: UpdateResult) -> list[tuple[SuffStats, SuffStats, SuffStats]]:
-    """A monitored twin's last windows, newest first: each window's drift statistics, the
-    twin's before it and the window's score spread (:func:`window_spread`); empty after a
-    restart."""
+    """A monitored twin's last windows, newest first.
+
+    **Arguments:**
+
+    - `result`: the monitored twin, an `UpdateResult` (its stored recent windows' statistics).
+
+    **Returns:** a list, newest first, of `(window, twin, spread)` `SuffStats` triples batched over
+    the `q` drift equations: each window's drift statistics, the twin's before it and the window's
+    score spread (`window_spread`); at most `MAX_RECENT`, empty after a restart.
+    """
     kinds = [result.statistics.get(kind) for kind in RECENT_KINDS]
     if any(k is None for k in kinds):
         return []
@@ -62,8 +69,15 @@ def recent_windows(result: UpdateResult) -> list[tuple[SuffStats, SuffStats, Suf
 
 
 def window_spread(result: UpdateResult) -> SuffStats:
-    """The covariance of the last update's window's drift score over draws of its states'
-    error (``gram``; zeros where the states were not estimated), as the update stored it."""
+    """The covariance of the last update's window's drift score over draws of its states' error.
+
+    **Arguments:**
+
+    - `result`: the update with the window, an `UpdateResult`.
+
+    **Returns:** a `SuffStats` (float64 NumPy arrays) as the update stored it, the covariance its
+    `gram` `(q, K, K)`; zeros where the states were not estimated.
+    """
     spread = result.statistics.get(SPREAD_KIND)
     if spread is not None:
         return _stats(spread)
@@ -72,7 +86,7 @@ def window_spread(result: UpdateResult) -> SuffStats:
 
 
 def _with_recent(statistics: dict, recent: list[tuple[SuffStats, SuffStats, SuffStats]]) -> dict:
-    """``statistics`` with ``recent`` (newest first) as the store keeps it."""
+    """`statistics` with `recent` (newest first) as the store keeps it."""
     out = {k: v for k, v in statistics.items() if k not in RECENT_KINDS}
     if recent:
         for i, kind in enumerate(RECENT_KINDS):
@@ -86,12 +100,27 @@ def _stats(s) -> SuffStats:
 
 def pooled_tests(twin: SuffStats, window: SuffStats, recent: list[tuple[SuffStats, SuffStats, SuffStats]],
                  dispersion=1.0, spread: SuffStats | None = None, linear=False) -> list:
-    """The window against ``twin`` (the twin's drift statistics before it), then the window
-    pooled with the ``1 .. len(recent)`` windows before it against the twin before the oldest
-    of those: one :class:`~dtwin_jax.monitor.change.ChangeTest` each, with ``dispersion``
-    (:func:`~dtwin_jax.monitor.change.overdispersion`) and the windows' score spreads
-    (``spread`` this window's, :func:`window_spread`, and each recent window's third item;
-    None: none) and the nominal's ``linear`` columns (:func:`~dtwin_jax.monitor.change.linear_columns`)."""
+    """The window against the twin before it, then pooled with the windows before it.
+
+    The window alone is tested against `twin`; the window pooled with the `1 .. len(recent)`
+    windows before it, against the twin before the oldest of those. Each test adds the pooled
+    windows' score spreads to `V`.
+
+    **Arguments:**
+
+    - `twin`: the twin's drift statistics before the window, a `SuffStats` batched over the `q`
+      drift equations.
+    - `window`: the window's own drift statistics, likewise.
+    - `recent`: the windows before it, newest first (`recent_windows`): `(window, twin before
+      it, score spread)` triples; a spread of None adds nothing.
+    - `dispersion`: `()` or `(q,)`, the factor on `V` (`change.overdispersion`); default 1.
+    - `spread`: this window's score spread (`window_spread`), or None (default): none.
+    - `linear`: `(q, K)` or `(K,)` bool, or False (default): the nominal's linear columns
+      (`change.linear_columns`).
+
+    **Returns:** a list of `1 + len(recent)` `change.ChangeTest`s: the window alone, then pooled
+    with 1, 2, ... windows before it.
+    """
     omega = 0.0 if spread is None else np.asarray(spread.gram)
     tests, pooled = [window_test(twin, window, dispersion, omega, linear)], window
     for w, before, s in recent:
@@ -102,8 +131,17 @@ def pooled_tests(twin: SuffStats, window: SuffStats, recent: list[tuple[SuffStat
 
 
 def timeline_dispersion(timeline: list[dict], num_equations: int) -> np.ndarray:
-    """:func:`~dtwin_jax.monitor.change.overdispersion` of each drift equation from the
-    timeline's windows without an alarm (their unscaled ``T``)."""
+    """`change.overdispersion` of each drift equation from the timeline's windows without an alarm.
+
+    **Arguments:**
+
+    - `timeline`: the monitor's window entries (`Monitor.timeline`), whose `test` holds the
+      unscaled `T` (`statistic` times `dispersion`) of each equation.
+    - `num_equations`: the number `q` of drift equations; windows whose `test` has another number
+      of entries are skipped.
+
+    **Returns:** the factor on `V`, `(q,)`, at least 1.
+    """
     total, count = np.zeros(num_equations), np.zeros(num_equations)
     for w in timeline:
         tests = w.get("test")
@@ -117,25 +155,40 @@ def timeline_dispersion(timeline: list[dict], num_equations: int) -> np.ndarray:
 
 
 def test_p_value(test) -> float:
-    """One test's p-value over every equation: the smallest times their number (Bonferroni)."""
+    """One test's p-value over every equation: the smallest times their number (Bonferroni).
+
+    **Arguments:**
+
+    - `test`: a `change.ChangeTest`, its `p_value` `(q,)`.
+
+    **Returns:** the p-value, a float in [0, 1].
+    """
     return float(min(1.0, np.min(np.asarray(test.p_value)) * np.size(test.p_value)))
 
 
 def combined_p_value(tests) -> tuple[float, float]:
-    """``(p for the alarm, the window's alone)``: each test's :func:`test_p_value`, and the
-    smallest over the tests times their number."""
+    """The alarm's p-value and the window's alone, from the pooled tests.
+
+    **Arguments:**
+
+    - `tests`: the `change.ChangeTest`s of `pooled_tests`, the window alone first.
+
+    **Returns:** `(p, p_window)`: the alarm's p-value, the smallest of the tests' `test_p_value`
+    times their number, and the window's alone (the first test's `test_p_value`), floats.
+    """
     p = [test_p_value(t) for t in tests]
     return float(min(1.0, min(p) * len(p))), p[0]
 
 
 def alarm_reasons(before: UpdateResult, after: UpdateResult) -> tuple[list[str], list[str], list[str]]:
-    """What changed between two twins' drift equations, as ``"state:term"`` names.
+    """What changed between two twins' drift equations, as `"state:term"` names.
 
     **Arguments:**
 
-    - ``before``, ``after``: updates over the same library.
+    - `before`: the twin before, an `UpdateResult`.
+    - `after`: the twin after, an update over the same library.
 
-    **Returns:** ``(new, dropped, changed)``: terms selected after but not before, before but
+    **Returns:** `(new, dropped, changed)`: terms selected after but not before, before but
     not after, and selected in both whose mean after lies outside their 95% HDI before.
     """
     old = {e.state: e for e in before.equations if e.kind == "drift"}
@@ -157,27 +210,39 @@ def alarm_reasons(before: UpdateResult, after: UpdateResult) -> tuple[list[str],
 
 
 def data_fingerprint(data: dict) -> str:
-    """SHA-256 (hex) of a window as read: ``t``, ``x``, ``u``, ``xdot`` and the sensor names
-    (:func:`~dtwin_jax.update.lifecycle.arrays_sha256`)."""
+    """SHA-256 of a window as read: `t`, `x`, `u`, `xdot` and the sensor names.
+
+    **Arguments:**
+
+    - `data`: the window, as `dtwin_jax.io.load_measurements` returns a file (a key that is
+      missing or None counts as absent).
+
+    **Returns:** the hex digest (`update.lifecycle.arrays_sha256`), equal for the same data read
+    again.
+    """
     names = "".join(f"{key}:{data.get(key)!r};" for key in ("x_names", "xdot_names"))
     return arrays_sha256({key: data.get(key) for key in ("t", "x", "u", "xdot")}, names)
 
 
 def window_estimates(result: UpdateResult, window: SuffStats, also=()) -> list[dict]:
-    """Each drift equation's coefficients from this window alone: least squares on the
-    window's statistics over the twin's selected terms, every displacement's linear term
-    (the stiffness, followed even while it is not selected) and the terms in ``also``, with
+    """Each drift equation's coefficients from this window alone, with their standard errors.
+
+    Least squares on the window's statistics over the twin's selected terms, every displacement's linear term
+    (the stiffness, followed even while it is not selected) and the terms in `also`, with
     their standard errors from the window's own residual variance. Independent from window
     to window (the twin's posterior is not: it carries the older windows), so trends over
-    service time are fitted to these (:mod:`dtwin_jax.monitor.degradation`).
+    service time are fitted to these (`dtwin_jax.monitor.degradation`).
 
-    **Arguments:** ``result`` the twin after the window, ``window`` the window's own
-    statistics, ``also`` ``(state, term)`` pairs regressed as well (a monitor passes every
-    term it regressed before, so that a term whose selection flips from window to window
-    does not make the others' estimates jump: the track stays one model).
+    **Arguments:**
 
-    **Returns:** one ``{"state", "terms": {term: [mean, sd]}}`` per drift equation,
-    acceleration units.
+    - `result`: the twin after the window, an `UpdateResult`.
+    - `window`: the window's own drift statistics, a `SuffStats` batched over the drift equations.
+    - `also`: `(state, term)` pairs regressed as well (a monitor passes every term it regressed
+      before, so that a term whose selection flips from window to window does not make the
+      others' estimates jump: the track stays one model); default none.
+
+    **Returns:** one `{"state", "terms": {term: [mean, sd]}}` per drift equation,
+    acceleration units (`terms` empty where the window's Gram matrix over those terms is singular).
     """
     nominal = result.nominal
     linear = set(nominal.state_names[:nominal.d])  # the displacements q_1 .. q_d
@@ -202,7 +267,7 @@ def window_estimates(result: UpdateResult, window: SuffStats, also=()) -> list[d
 
 
 def _regressed(twin: UpdateResult, timeline: list[dict]) -> set[tuple[str, str]]:
-    """``(state, term)`` of the twin's selected drift terms and of every term an earlier
+    """`(state, term)` of the twin's selected drift terms and of every term an earlier
     window's estimates regressed."""
     terms = {(e.state, name) for e in twin.equations if e.kind == "drift"
              for name, chosen in zip(e.names, e.selected) if chosen}
@@ -211,27 +276,34 @@ def _regressed(twin: UpdateResult, timeline: list[dict]) -> set[tuple[str, str]]
 
 
 def first_alarm(timeline: list[dict]) -> int | None:
-    """The index of the first window with an alarm, or None."""
+    """The index of the first window with an alarm, or None.
+
+    **Arguments:**
+
+    - `timeline`: the monitor's window entries (`Monitor.timeline`), oldest first.
+
+    **Returns:** the first alarm's window `index` (int), or None where no window raised one.
+    """
     return next((w["index"] for w in timeline if w.get("alarm")), None)
 
 
 @dataclasses.dataclass
 class Monitor:
-    """A twin that follows its structure: :meth:`step` tests and absorbs one window.
+    """A twin that follows its structure: `step` tests and absorbs one window.
 
     **Arguments:**
 
-    - ``twin``: the baseline :class:`~dtwin_jax.update.UpdateResult` (a saved twin's
-      :func:`~dtwin_jax.io.store.load_twin`, or a fresh update), either framework.
-    - ``false_alarm``: the chance that a window that follows the twin raises an alarm, in
+    - `twin`: the baseline `update.UpdateResult` (a saved twin's
+      `io.store.load_twin`, or a fresh update), either framework.
+    - `false_alarm`: the chance that a window that follows the twin raises an alarm, in
       (0, 1) (split evenly over the drift equations); None: the twin's framework's
-      :data:`FALSE_ALARM` (0.001 input-output, 0.0005 output-only).
-    - ``forget``: the weight, in [0, 1], of the older windows' data at each update (0.9:
+      `FALSE_ALARM` (0.001 input-output, 0.0005 output-only).
+    - `forget`: the weight, in [0, 1], of the older windows' data at each update (0.9:
       about ten windows' memory, so a slow drift is followed).
-    - ``settings``: the sampler's, per window.
-    - ``seed``: window ``h`` of the history is sampled with seed ``seed + h``, so a resumed
+    - `settings`: the sampler's, per window (default `MONITOR_SETTINGS`).
+    - `seed`: window `h` of the history is sampled with seed `seed + h`, so a resumed
       run repeats an uninterrupted one.
-    - ``smoothing``: as :func:`~dtwin_jax.update.update_input_output`'s.
+    - `smoothing`: as `update.update_input_output`'s (default `"auto"`).
     """
 
     twin: UpdateResult
@@ -253,12 +325,20 @@ class Monitor:
 
     @property
     def timeline(self) -> list[dict]:
-        """Every monitored window's entry (formats.md's ``windows``), oldest first."""
+        """Every monitored window's entry (formats.md's `windows`), oldest first."""
         return [h["monitor"] for h in self.twin.history if isinstance(h, dict) and isinstance(h.get("monitor"), dict)]
 
     def absorbed(self, data: dict) -> bool:
-        """Whether a window with exactly these data is already in the timeline (a resumed
-        run skips it: no window counts twice)."""
+        """Whether a window with exactly these data is already in the timeline.
+
+        A resumed run skips such a window: no window counts twice.
+
+        **Arguments:**
+
+        - `data`: the window, as `dtwin_jax.io.load_measurements` returns a file.
+
+        **Returns:** True where an entry of the timeline has the same `data_fingerprint`.
+        """
         fp = data_fingerprint(data)
         return any(w.get("data_sha256") == fp for w in self.timeline)
 
@@ -270,24 +350,24 @@ class Monitor:
                                 previous=previous, forget=self.forget)
 
     def step(self, data: dict, *, source: str = "window", t_start: float | None = None) -> dict:
-        """Test the window ``data`` against the twin, then absorb it.
+        """Test the window `data` against the twin, then absorb it.
 
         **Arguments:**
 
-        - ``data``: the window, as :func:`dtwin_jax.io.load_measurements` returns a file
-          (``t``, ``x``, ``u``, ``xdot``, ``x_names``, ``xdot_names``).
-        - ``source``: the window's name in the timeline.
-        - ``t_start``: its start in service time, s (default its first sample time).
+        - `data`: the window, as `dtwin_jax.io.load_measurements` returns a file
+          (`t`, `x`, `u`, `xdot`, `x_names`, `xdot_names`).
+        - `source`: the window's name in the timeline (default `"window"`).
+        - `t_start`: its start in service time, s (default its first sample time).
 
         **Returns:** the window's entry of the timeline (formats.md), also appended to the
-        twin's history: ``index``, ``source``, ``t_start``, ``alarm``, ``new_terms``,
-        ``dropped_terms``, ``changed_terms``, ``seconds``, ``equations``, and ``p_value`` (the
-        alarm's: :func:`combined_p_value`), ``p_window`` (this window's alone, over every drift
-        equation), ``pooled`` (the window alone, then pooled with 1, 2, ... windows before
-        it), ``test`` (the window alone: each equation's statistic, degrees of freedom and
+        twin's history: `index`, `source`, `t_start`, `alarm`, `new_terms`,
+        `dropped_terms`, `changed_terms`, `seconds`, `equations`, and `p_value` (the
+        alarm's: `combined_p_value`), `p_window` (this window's alone, over every drift
+        equation), `pooled` (the window alone, then pooled with 1, 2, ... windows before
+        it), `test` (the window alone: each equation's statistic, degrees of freedom and
         p-values: the whole library's, the largest term's, the linear terms'),
-        ``restarted``, ``window_estimates`` (:func:`window_estimates`) and ``data_sha256``
-        (:func:`data_fingerprint`).
+        `restarted`, `window_estimates` (`window_estimates`) and `data_sha256`
+        (`data_fingerprint`).
         """
         start = time.perf_counter()
         before = self.twin

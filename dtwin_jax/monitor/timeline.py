@@ -1,4 +1,4 @@
-"""A monitor's timeline as files: ``MONITOR.json`` (formats.md) and ``MONITOR.csv``, one row
+"""A monitor's timeline as files: `MONITOR.json` (formats.md) and `MONITOR.csv`, one row
 per window with every term that was ever selected (its PIP, mean and 95% interval)."""
 
 from __future__ import annotations
@@ -15,13 +15,27 @@ _REASONS = ("new_terms", "dropped_terms", "changed_terms")
 
 
 def timeline_json(timeline: list[dict], **settings) -> dict:
-    """``{"windows": [...], "first_alarm": index or null}`` (formats.md), plus ``settings``
-    (the false-alarm rate and the forgetting factor, say) as further keys."""
+    """The timeline as the `MONITOR.json` object (formats.md).
+
+    **Arguments:**
+
+    - `timeline`: the monitor's windows, one dict each (`Monitor.timeline`).
+    - `**settings`: further keys to record (the false-alarm rate and the forgetting factor, say).
+
+    **Returns:** `{"windows": [...], "first_alarm": index or None, **settings}`, ready for JSON.
+    """
     return {"windows": list(timeline), "first_alarm": first_alarm(timeline), **settings}
 
 
 def ever_selected(timeline: list[dict]) -> list[tuple[str, str, str]]:
-    """``(state, kind, term)`` of every term selected in some window, in order of first selection."""
+    """Every term selected in some window of a timeline, in order of first selection.
+
+    **Arguments:**
+
+    - `timeline`: the monitor's windows, one dict each (`Monitor.timeline`).
+
+    **Returns:** a list of `(state, kind, term)` string triples, `kind` being `"drift"` or `"diffusion"`.
+    """
     seen = {}
     for w in timeline:
         for e in w.get("equations", []):
@@ -31,9 +45,18 @@ def ever_selected(timeline: list[dict]) -> list[tuple[str, str, str]]:
 
 
 def timeline_csv(timeline: list[dict]) -> str:
-    """One row per window: the fixed columns, the reasons (``;``-joined ``state:term``), then
-    ``pip``, ``mean``, ``lower`` and ``upper`` (95% HDI) of every term ever selected, named
-    ``pip[x2:x1**3]`` (``[x2 diffusion:1]`` for a diffusion term); empty where not selected."""
+    """The timeline as the text of `MONITOR.csv`, one row per window.
+
+    The columns: the fixed ones, the reasons (`;`-joined `state:term`), then `pip`, `mean`,
+    `lower` and `upper` (95% HDI) of every term ever selected, named `pip[x2:x1**3]`
+    (`[x2 diffusion:1]` for a diffusion term); empty where not selected.
+
+    **Arguments:**
+
+    - `timeline`: the monitor's windows, one dict each (`Monitor.timeline`).
+
+    **Returns:** the CSV text, a header row then one row per window, each line ending in a newline.
+    """
     terms = ever_selected(timeline)
     label = [f"{s}:{t}" if k == "drift" else f"{s} {k}:{t}" for s, k, t in terms]
     header = list(_FIXED) + list(_REASONS) + [f"{q}[{lab}]" for lab in label for q in ("pip", "mean", "lower", "upper")]
@@ -53,7 +76,15 @@ def timeline_csv(timeline: list[dict]) -> str:
 
 
 def write_timeline(path, timeline: list[dict], *, csv_path=None, **settings) -> None:
-    """Write ``MONITOR.json`` (and ``MONITOR.csv``), each atomically."""
+    """Write `MONITOR.json` (and `MONITOR.csv`), each atomically.
+
+    **Arguments:**
+
+    - `path`: where to write `MONITOR.json`.
+    - `timeline`: the monitor's windows, one dict each (`Monitor.timeline`).
+    - `csv_path`: where to write `MONITOR.csv`, or None (default) for no CSV file.
+    - `**settings`: further keys for the JSON file (see `timeline_json`).
+    """
     from dtwin_jax.io import atomic_path, write_json
 
     write_json(path, timeline_json(timeline, **settings))

@@ -1,24 +1,24 @@
 """Framework 2 from accelerometers alone: the ambient vibration of a structure in service.
 
-Nothing but the accelerations ``a`` of the degrees of freedom is measured; the force is white
+Nothing but the accelerations `a` of the degrees of freedom is measured; the force is white
 and unknown (the Ito diffusion of framework 2). An accelerometer's sample is the velocity's
-increment over its interval over ``dt``: the Kramers-Moyal target of framework 2, measured
+increment over its interval over `dt`: the Kramers-Moyal target of framework 2, measured
 rather than differenced. The states come from the anchored smoother
-(:mod:`dtwin_jax.preprocess.accelerometers`) with no input: the kinematic chains integrate the measured
+(`dtwin_jax.preprocess.accelerometers`) with no input: the kinematic chains integrate the measured
 accelerations, and the equation of motion anchors them below the first mode, its force the
 white one. Each row regresses a sample on the library at the state the drift predicts for it
 from the sample before (non-anticipating, as Ito's calculus needs; the increment's O(dt) term
 cancels, as in framework 2's moved regressors).
 
-The weak form of :mod:`dtwin_jax.preprocess.weak_form_accelerometers` is not used for the drift here: its
+The weak form of `dtwin_jax.preprocess.weak_form_accelerometers` is not used for the drift here: its
 windows hold the white force both in the rows' error and in the states that the columns see
-(with the true states of zoo-0002, least squares took a spurious damping of +6.3 /s), and its
-``chi''`` weighting leaves little of a damping force. Measured on zoo members 0-39 (10
-records x 2 s; ``benchmarks/results/zoo_output_only_accelerometers.md``): 42% exact with the
-weak form and an Ito correction, 80% with these rows (every damping member exact).
+(with the true states of a zoo member, least squares took a spurious damping), and its
+`chi''` weighting leaves little of a damping force. On the zoo these rows find the exact
+support far more often than the weak form with an Ito correction, and on every damping member
+(`benchmarks/results/zoo_output_only_accelerometers.md`).
 
-Its restricted likelihood serves the diffusion: the accelerations' white floor ``T`` (their
-Savitzky-Golay residual) is the sensors' noise plus the force's ``Gamma / dt``, and the two
+Its restricted likelihood serves the diffusion: the accelerations' white floor `T` (their
+Savitzky-Golay residual) is the sensors' noise plus the force's `Gamma / dt`, and the two
 enter the weak rows through different filters, which splits them. The smoother needs the split
 (the sensors' share is its kinematic chains' noise, the force's its anchor's), so states and
 split are iterated.
@@ -77,27 +77,34 @@ _INTERPOLATION = "bandlimited"
 def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, lib: Library, *,
                                pip_threshold: float, settings: SamplerSettings, seed: int, progress: bool,
                                previous, forget: float, allow_repeat: bool = False) -> UpdateResult:
-    """Discover the drift perturbation and the constant diffusion of ``nominal`` from
-    accelerometers alone (called by :func:`~dtwin_jax.output_only.update.update_output_only`).
+    """Discover the drift perturbation and the constant diffusion of `nominal` from
+    accelerometers alone (called by `dtwin_jax.output_only.update.update_output_only`).
 
     **Arguments:**
 
-    - ``nominal``: the nominal model (every degree of freedom with an accelerometer, ``K``
-      positive definite, no extra states).
-    - ``t``: ``(N,)`` sample times, s, uniform.
-    - ``xdot``: ``(N, s)`` or ``(R, N, s)`` measured rates; those of the velocity states are the
+    - `nominal`: the nominal model `LinearSecondOrder` (every degree of freedom with an
+      accelerometer, `K` positive definite, no extra states).
+    - `t`: `(N,)` sample times, s, uniform.
+    - `xdot`: `(N, s)` or `(R, N, s)` measured rates (`s` of them); those of the velocity states are the
       accelerometers' averages over each sample's interval (state units / s^2).
-    - ``xdot_names``: the states of its columns (None: all ``m``).
-    - ``lib``: the drift library (no inputs); a constant column is left out with a warning.
-    - ``pip_threshold``, ``settings``, ``seed``, ``progress``: as
-      :func:`~dtwin_jax.output_only.update.update_output_only`.
-    - ``previous``, ``forget``, ``allow_repeat``: a re-update: the drift's statistics and the
-      constant diffusion's pseudo-observations of ``previous``, times ``forget``, are added to
-      this window's (:func:`~dtwin_jax.update.lifecycle.with_previous`). The states are this
-      window's own (its anchor selects from this window alone).
+    - `xdot_names`: the states of the columns of `xdot` (None: all `m`).
+    - `lib`: the drift `Library` (no inputs); a constant column is left out with a warning.
+    - `pip_threshold`: inclusion probability above which a term is selected, as in
+      `dtwin_jax.output_only.update.update_output_only`.
+    - `settings`: the sampler's `SamplerSettings` (chains, draws, burn-in); the anchor's short
+      selection runs use `dtwin_jax.output_only.stats.first_pass_settings` of it.
+    - `seed`: the sampler's seed (also that of the states' error draws).
+    - `progress`: show the stages and a bar of the sweeps.
+    - `previous`: an earlier output-only update from accelerometers alone (a constant
+      diffusion), or None: a re-update, whose drift statistics and constant diffusion's
+      pseudo-observations, times `forget`, are added to this window's
+      (`dtwin_jax.update.lifecycle.with_previous`). The states are this window's own (its
+      anchor selects from this window alone).
+    - `forget`: the previous statistics' weight, in (0, 1].
+    - `allow_repeat`: take a window already in the history (its data would count twice).
 
-    **Returns:** an :class:`UpdateResult` of mode ``"output-only"``: one ``drift`` equation per
-    velocity and one ``diffusion`` equation (the constant ``Gamma_ii``, velocity^2 / s)."""
+    **Returns:** an `UpdateResult` of mode `"output-only"`: one `drift` equation per
+    velocity and one `diffusion` equation (the constant `Gamma_ii`, velocity^2 / s)."""
     start = time.perf_counter()
     x, _ = accelerometer_layout(nominal, xdot, xdot_names, None)
     xdot_index = measured_index(xdot_names, nominal, "xdot_names")
@@ -204,12 +211,19 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
 def increment_stats(nominal: LinearSecondOrder, lib: Library, dt: float, a, x) -> SuffStats:
     """Kramers-Moyal statistics of accelerometer samples.
 
-    **Arguments:** ``nominal``, ``lib`` (no inputs); ``dt`` s; ``a (R, N, d)`` the
-    accelerometers' averages over each sample's interval; ``x (R, N, m)`` the states.
+    **Arguments:**
 
-    **Returns:** ``SuffStats`` batched over the velocity equations: sample ``k`` less the
-    nominal drift, regressed on the library, both at the state one Euler step of the nominal
-    drift predicts from sample ``k - 1`` (the regressors see no force of the interval's own)."""
+    - `nominal`: the nominal model `LinearSecondOrder`.
+    - `lib`: the drift `Library` (no inputs).
+    - `dt`: the sample interval, s.
+    - `a`: `(R, N, d)` the accelerometers' averages over each sample's interval (acceleration
+      units).
+    - `x`: `(R, N, m)` the states.
+
+    **Returns:** `SuffStats` batched over the `d` velocity equations (`gram (d, K, K)`, `xty
+    (d, K)`, `yty (d,)`, `n (d,)` = `R (N - 1)`): sample `k` less the nominal drift, regressed
+    on the library, both at the state one Euler step of the nominal drift predicts from sample
+    `k - 1` (the regressors see no force of the interval's own)."""
     d, m = nominal.d, nominal.m
     vel = list(nominal.velocity_index)
     R, N, _ = x.shape
@@ -222,8 +236,8 @@ def increment_stats(nominal: LinearSecondOrder, lib: Library, dt: float, a, x) -
 
 
 def _errors_in_variables(coef, perturbed) -> dict | None:
-    """The spread of the selected terms' fit over the statistics ``perturbed`` at draws of the
-    states' estimation error, for :func:`~dtwin_jax.preprocess.accelerometers.widened_draws`
+    """The spread of the selected terms' fit over the statistics `perturbed` at draws of the
+    states' estimation error, for `dtwin_jax.preprocess.accelerometers.widened_draws`
     (no feedback gain): None when nothing is selected or no draws."""
     if coef is None or perturbed is None:
         return None
@@ -235,11 +249,18 @@ def _errors_in_variables(coef, perturbed) -> dict | None:
 
 
 def score_spread(coef, perturbed) -> SuffStats:
-    """The covariance of each equation's score ``b - G c`` (``c`` the window's coefficients
-    ``coef (q, K)``, zero if None) over the statistics ``perturbed`` at draws of the states'
-    estimation error: the part of a window's score that its own states' error puts there
-    (:func:`~dtwin_jax.monitor.change.window_test`). As ``SuffStats``: ``gram (q, K, K)`` the
-    covariance, the rest zeros but ``n``, the number of draws."""
+    """The covariance of each equation's score `b - G c` over draws of the states' estimation
+    error: the part of a window's score that its own states' error puts there
+    (`dtwin_jax.monitor.change.window_test`).
+
+    **Arguments:**
+
+    - `coef`: `(q, K)` the window's coefficients `c`, or None for zero.
+    - `perturbed`: the statistics (`SuffStats`, `G = gram (q, K, K)`, `b = xty (q, K)`) at each
+      of `S` draws of the states' estimation error, a sequence.
+
+    **Returns:** `SuffStats`: `gram (q, K, K)` the scores' covariance, `xty` and `yty` zeros,
+    `n (q,)` the number of draws `S`."""
     scores = np.array([np.asarray(st.xty) - np.einsum("jkl,jl->jk", np.asarray(st.gram),
                                                         0.0 if coef is None else np.asarray(coef, dtype=float))
                        for st in perturbed])  # (S, q, K)
@@ -249,20 +270,20 @@ def score_spread(coef, perturbed) -> SuffStats:
 
 
 def _split(info: dict) -> tuple[np.ndarray, np.ndarray]:
-    """The accelerations' white floor ``T (d,)`` split ``(sensor variance (d,), force Gamma / dt
-    (d,))``: the weak rows' covariance ``S_x(T) + lambda S_w`` is that of a sensor variance ``s``
-    and a force variance ``f`` with ``f / s = lambda / T``, and ``s + f = T``. The floor is
+    """The accelerations' white floor `T (d,)` split `(sensor variance (d,), force Gamma / dt
+    (d,))`: the weak rows' covariance `S_x(T) + lambda S_w` is that of a sensor variance `s`
+    and a force variance `f` with `f / s = lambda / T`, and `s + f = T`. The floor is
     measured well (it is nearly all of the accelerations' variance in ambient vibration); the
-    rows' noise scale is not (zoo-0006, 40 records: ``sigma2 lambda dt`` 20-43% off, the split
-    of the floor 0.3%)."""
+    rows' noise scale is not (on a zoo member `sigma2 lambda dt` was far off where the split of
+    the floor was close)."""
     floor = np.asarray(info["acceleration_noise_std"]) ** 2
     lam = np.asarray(info["equation_error_weight"])
     return floor * floor / (floor + lam), floor * lam / (floor + lam)
 
 
 def _constant_stats(gamma_draws, n) -> SuffStats:
-    """The constant diffusion's statistics for the twin store, ``n`` pseudo-observations per
-    velocity whose mean and spread are the draws' (``gamma_draws (d, chains, draws)``)."""
+    """The constant diffusion's statistics for the twin store, `n` pseudo-observations per
+    velocity whose mean and spread are the draws' (`gamma_draws (d, chains, draws)`)."""
     g = np.asarray(gamma_draws).reshape(gamma_draws.shape[0], -1)
     mean, var = g.mean(axis=1), g.var(axis=1)
     n = np.asarray(n, dtype=np.float64)

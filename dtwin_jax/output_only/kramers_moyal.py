@@ -10,22 +10,22 @@ Drift (Eq. 20a, 23a), with what makes it hold on stiff, noisy data:
   `dZ_k = X_{k+1} - Phi X_k` with `Phi = exp(A dt)`, and `Y_k = Psi^-1 dZ_k` with
   `Psi = int_0^dt exp(A s) ds`, so `E[Y_k | X_k] = h(X_k) + dt/2 (Lh)(X_k) + O(dt^2)`.
 * The library at sample `k` is regressed on the target of the step `k+1 -> k+2`, which holds
-  no noise of sample `k` (with the same sample, 5% noise makes a spurious damping term).
+  no noise of sample `k` (with the same sample, moderate noise makes a spurious damping term).
   The shift and the drift's change over the step go into the regressors,
   `L + 3/2 dt dL/dt + 7/6 dt^2 d^2L/dt^2`, with the time derivatives taken along the model's
-  drift (nominal plus the current estimate of `h`; two passes): not small when `h` is stiff
-  (example 2: 6% at 1 ms), and not to be taken from the measured path, whose Brownian
-  velocity would put noise into a velocity term's regressor (cubic damping: -22%).
+  drift (nominal plus the current estimate of `h`; two passes): not small when `h` is stiff,
+  and not to be taken from the measured path, whose Brownian velocity would put noise into a
+  velocity term's regressor (and attenuate a cubic damping).
 * Errors in variables: `E[L_a L_b (X + eps)] = L_a L_b + 1/2 sum_j s_j^2 d_j^2 (L_a L_b)`
   to second order, and likewise for `L^T Y`; both are subtracted. For monomials up to
   degree 3 this is exact (`x^3 -> x^3 - 3 s^2 x`).
 
 Diffusion (Eq. 20b, 23b): the squared increment `dZ_i^2 / dt` of a velocity after the drift
-is removed. White noise adds `2 s^2 / dt` to it, 38 times the diffusion itself for example 1
-at 5% noise, so raw squared increments are useless. Here the increments are pre-averaged over
+is removed. White noise adds `2 s^2 / dt` to it, many times the diffusion itself at moderate
+noise, so raw squared increments are useless. Here the increments are pre-averaged over
 a triangular window of `K ~ sqrt(48 s^2 / (Gamma dt))` samples (Jacod et al. 2009), which
 balances signal and noise, and the known noise part is subtracted. That is a fast first
-guess; the diffusion itself is the likelihood maximum of :mod:`dtwin_jax.output_only.statespace`.
+guess; the diffusion itself is the likelihood maximum of `dtwin_jax.output_only.statespace`.
 
 The noise variances `s_j^2` come from the data: `Var(X_{k+L} - X_k) = 2 s^2 + L Gamma dt +
 L^2 D` for lags `L = 1, 2, 3` cancels the diffusion `Gamma` and the drift `D`.
@@ -59,7 +59,14 @@ __all__ = [
 
 
 def state_matrix(nominal: LinearSecondOrder) -> jax.Array:
-    """`A (m, m)` of the nominal model, `dX/dt = A X + B_x u`."""
+    """The state matrix `A (m, m)` of the nominal model, `dX/dt = A X + B_x u`.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model `LinearSecondOrder`.
+
+    **Returns:** `A`, shape `(m, m)`: the identity in the displacements' rows (their rates are
+    the velocities), `-M^-1 [K C]` in the velocities' rows, zero rows for any further states."""
     d, m = nominal.d, nominal.m
     gain = mass_solve(nominal.M, jnp.concatenate([nominal.K, nominal.C], axis=1))
     A = jnp.zeros((m, m), gain.dtype)
@@ -67,8 +74,15 @@ def state_matrix(nominal: LinearSecondOrder) -> jax.Array:
 
 
 def trapezoid_propagators(nominal: LinearSecondOrder, dt: float) -> tuple[jax.Array, jax.Array]:
-    """`(Psi_0, Psi_1)`, `(m, m)` each: `int_0^dt exp(A (dt - s)) h(s) ds = Psi_0 h(0) +
-    Psi_1 h(dt)` for `h` linear over the step (Van Loan)."""
+    """The trapezoid propagators of the nominal model's forced response over one step (Van Loan).
+
+    **Arguments:**
+
+    - `nominal`: the nominal model `LinearSecondOrder`.
+    - `dt`: the step, s.
+
+    **Returns:** `(Psi_0, Psi_1)`, `(m, m)` each: `int_0^dt exp(A (dt - s)) h(s) ds =
+    Psi_0 h(0) + Psi_1 h(dt)` for `h` linear over the step."""
     A = state_matrix(nominal)
     m = A.shape[0]
     eye = jnp.eye(m, dtype=A.dtype)
@@ -80,7 +94,14 @@ def trapezoid_propagators(nominal: LinearSecondOrder, dt: float) -> tuple[jax.Ar
 
 
 def propagators(nominal: LinearSecondOrder, dt: float) -> tuple[jax.Array, jax.Array]:
-    """`Phi = exp(A dt)` and `Psi = int_0^dt exp(A s) ds`, both `(m, m)` (Van Loan)."""
+    """The nominal model's one-step propagators (Van Loan).
+
+    **Arguments:**
+
+    - `nominal`: the nominal model `LinearSecondOrder`.
+    - `dt`: the step, s.
+
+    **Returns:** `(Phi, Psi)`: `Phi = exp(A dt)` and `Psi = int_0^dt exp(A s) ds`, both `(m, m)`."""
     A = state_matrix(nominal)
     m = A.shape[0]
     block = jnp.zeros((2 * m, 2 * m), A.dtype).at[:m, :m].set(A).at[:m, m:].set(jnp.eye(m))
@@ -90,12 +111,19 @@ def propagators(nominal: LinearSecondOrder, dt: float) -> tuple[jax.Array, jax.A
 
 @functools.partial(jax.jit, static_argnames="per_record")  # one program: op by op, ten compile
 def noise_variance(x, per_record: bool = False) -> jax.Array:
-    """White measurement-noise variance `(m,)` of states `x (R, N, m)`, pooled over records,
-    or `(R, m)`, one per record, with `per_record`.
+    """White measurement-noise variances of measured states.
 
     Third and fourth differences: white noise adds `C(2p, p) s^2` to the mean square of the
     `p`-th difference, a Brownian velocity `C(2p-2, p-1) Gamma dt`, and a smooth signal only
     `O((omega dt)^(2p))`; `V_4 - (10/3) V_3 = (10/3) s^2` cancels the Brownian part.
+
+    **Arguments:**
+
+    - `x`: measured states, shape `(R, N, m)`.
+    - `per_record`: False (default) to pool over records, True for one estimate per record.
+
+    **Returns:** the noise variances `s^2` (the states' units squared, floored at zero), shape
+    `(m,)` pooled, or `(R, m)` with `per_record`.
     """
     x = jnp.asarray(x)
     axis = 1 if per_record else (0, 1)
@@ -105,7 +133,15 @@ def noise_variance(x, per_record: bool = False) -> jax.Array:
 
 
 def drift_targets(nominal: LinearSecondOrder, x, dt: float) -> jax.Array:
-    """`Y_k = [Psi^-1 (X_{k+1} - Phi X_k)]_r`: `x (R, N, m)` -> `(R, N - 1, r)`, rate units."""
+    """Kramers-Moyal drift targets `Y_k = [Psi^-1 (X_{k+1} - Phi X_k)]_r` of the regressed rows.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model `LinearSecondOrder` (its exact propagators `Phi`, `Psi`).
+    - `x`: measured states, shape `(R, N, m)`.
+    - `dt`: the sample interval, s.
+
+    **Returns:** `Y`, shape `(R, N - 1, r)`, in rate units (the regressed states' units / s)."""
     Phi, Psi = propagators(nominal, dt)
     x = jnp.asarray(x)
     dZ = x[:, 1:] - x[:, :-1] @ Phi.T
@@ -122,8 +158,7 @@ def _directional(fn, x, e):
 def _derivatives(lib: Library, x, smoothing=None):
     """Per state `j`, `d_j L` and `d_j^2 L`, each `(m, P, K)`, at `x (P, m)`, block by block
     in library order: monomials in closed form, the other families by differentiation (on
-    example 2's 210 monomials that took 0.8 s per 20000 samples, most of the drift
-    statistics' time)."""
+    a large monomial library that took most of the drift statistics' time)."""
     d1, d2, start = [], [], 0
     for family, idx in lib.blocks:
         if family == "poly":
@@ -159,7 +194,7 @@ def _along_flow(nominal: LinearSecondOrder, f, x, L, d1, coef):
     """First and second time derivatives of the library along the drift
     `F(x) = A x + S coef L(x)` at `x (P, m)`: `J_L F` and `D^2 L[F, F] + J_L J_F F`, each
     `(P, K)`, from the library's values `L (P, K)` and first derivatives `d1 (m, P, K)`
-    (:func:`_derivatives`), `coef (r, K)` the drift perturbation's coefficients, `f` the
+    (`_derivatives`), `coef (r, K)` the drift perturbation's coefficients, `f` the
     library at one sample. `J_F F = A F + S coef J_L F` needs no derivative of the drift, so
     only `D^2 L[F, F]` takes a second-order forward pass, its tangent held fixed
     (differentiating the drift inside it evaluated the whole library twice more)."""
@@ -186,27 +221,39 @@ def drift_statistics(
 ) -> sampler.SuffStats:
     """Noise-corrected sufficient statistics of every regressed drift equation.
 
-    `x (R, N, m)` measured states, `noise_var (m,)` their white-noise variances,
-    `coef (r, K)` the current estimate of the drift perturbation `S h`, the coefficients of
-    `lib`'s terms (smoothed by `smoothing`) in the regressed rows (None: zero). The library
-    at sample `k` is regressed on the target of the step `k+1 -> k+2`, which holds no noise
-    of sample `k`; the shift and the drift's change over the step are taken into the
-    regressors, `L + 3/2 dt dL/dt + 7/6 dt^2 d^2L/dt^2`, the
-    time derivatives taken along the model's drift `A x + S h(x)` at `x_k`. A derivative
-    estimated from the measured path instead (a Savitzky-Golay filter) sees a Brownian
-    velocity's roughness, which for a velocity term such as `x2**3` acts as noise in the
-    regressor and attenuates it (cubic damping: -22%).
+    The library at sample `k` is regressed on the target of the step `k+1 -> k+2`, which
+    holds no noise of sample `k`; the shift and the drift's change over the step are taken
+    into the regressors, `L + 3/2 dt dL/dt + 7/6 dt^2 d^2L/dt^2`, the time derivatives taken
+    along the model's drift `A x + S h(x)` at `x_k`. A derivative estimated from the measured
+    path instead (a Savitzky-Golay filter) sees a Brownian velocity's roughness, which for a
+    velocity term such as `x2**3` acts as noise in the regressor and attenuates it.
 
-    `smoothing (m,)` (optional): the non-smooth families become their Gaussian averages over
-    these variances (:meth:`Library.__call__`): over the step the velocity moves by a Brownian
-    increment, and `E[sign(v_{k+1.5}) | v_k]` is a smoothed sign, which `sign(v_k)` with
-    derivatives that vanish almost everywhere cannot see (Coulomb friction came out 65% off
-    beside spurious `x2`, `x2**3`). Pass `Gamma tau - s^2` to also undo the measurement
-    noise's own smoothing; those columns then get no correction of their mean, only of their
-    scatter.
-    `rows` (optional, may be traced): use only the first `rows` samples (of the `R (N - 2)`
-    in record order); chunks past them are skipped, not computed.
-    Returns `SuffStats` batched over the `r` regressed states (see the module docstring).
+    With `smoothing`, the non-smooth families become their Gaussian averages over these
+    variances (`Library.__call__`): over the step the velocity moves by a Brownian increment,
+    and `E[sign(v_{k+1.5}) | v_k]` is a smoothed sign, which `sign(v_k)` with derivatives that
+    vanish almost everywhere cannot see (Coulomb friction came out far off beside spurious
+    `x2`, `x2**3`).
+
+    **Arguments:**
+
+    - `nominal`: the nominal model `LinearSecondOrder`.
+    - `lib`: the drift `Library` (no inputs).
+    - `x`: measured states, shape `(R, N, m)`.
+    - `dt`: the sample interval, s.
+    - `noise_var`: the states' white-noise variances, shape `(m,)` (the states' units squared).
+    - `coef`: `(r, K)` the current estimate of the drift perturbation `S h`, the coefficients
+      of `lib`'s terms (smoothed by `smoothing`) in the regressed rows, or None (default) for
+      zero.
+    - `smoothing`: variances `(m,)` over which the non-smooth families are averaged, or None
+      (default) for exact terms. Pass `Gamma tau - s^2` to also undo the measurement noise's
+      own smoothing; those columns then get no correction of their mean, only of their
+      scatter.
+    - `chunk`: samples per chunk of the compiled loop body (default 20000).
+    - `rows`: use only the first `rows` samples (of the `R (N - 2)` in record order; may be
+      traced), or None (default) for all; chunks past them are skipped, not computed.
+
+    **Returns:** `SuffStats` batched over the `r` regressed states (see the module docstring):
+    `gram (r, K, K)`, `xty (r, K)`, `yty (r,)`, `n (r,)` the samples used.
     """
     x = jnp.asarray(x)
     R, N, m = x.shape
@@ -338,12 +385,12 @@ def _hermite_products(T, exponents):
 
 
 def _hermite_sums(T, exponents, weights):
-    """`(G,)`: the `weights (P,)`-weighted sum over samples of :func:`_hermite_products`.
+    """`(G,)`: the `weights (P,)`-weighted sum over samples of `_hermite_products`.
 
     Each product splits into a factor of the first half of the states and one of the
     second; the sums of all pairs of distinct half-products are one matrix product
-    (example 2: 1820 sums from 91 x 91 half-products, 0.27 s -> 0.02 s per 20000 samples),
-    unless the halves have so many distinct products that the direct sums are cheaper."""
+    (example 2: 1820 sums from 91 x 91 half-products), unless the halves have so many
+    distinct products that the direct sums are cheaper."""
     half = T.shape[1] // 2
     first, i = np.unique(exponents[:, :half], axis=0, return_inverse=True)
     second, j = np.unique(exponents[:, half:], axis=0, return_inverse=True)
@@ -376,19 +423,30 @@ def preaveraged_diffusion(
     *,
     window: int | None = None,
 ):
-    """Pre-averaged, noise-corrected quadratic variation of the velocities: `(Gamma (d,),
-    window)`, a fast first guess for :func:`statespace.diffusion_mle`.
+    """Pre-averaged, noise-corrected quadratic variation of the velocities, a fast first guess
+    for `statespace.diffusion_mle`.
 
-    `x (R, N, m)` measured states; `noise_var (m,)`; `perturbation(x (m,)) -> (m,)` the
-    fitted drift perturbation `S h`, removed over each step by the trapezoid rule (an
-    Euler step leaves `dt^2/2 (Lh)`, which for example 2 exceeds the Brownian increment).
-    `h` is evaluated at the measured states with its second-order noise bias removed: a
-    smoothed state would be better per sample, but its error is slow and adds up over the
-    pre-averaging window. Good to a few percent while the noise is at most ~100 times the
-    Brownian increment per sample (example 1 at 10%); far beyond, the drift's residual
-    dominates (example 2 at 5%, true drift: Gamma of `x3` -77%). Returns `(Gamma (d,), window)`, `Gamma` floored
-    at 1e-3 of the targets' mean magnitude so that it can start a search in `log Gamma`,
-    and the window `K` in samples.
+    The drift perturbation is removed over each step by the trapezoid rule (an Euler step
+    leaves `dt^2/2 (Lh)`, which for example 2 exceeds the Brownian increment). `h` is
+    evaluated at the measured states with its second-order noise bias removed: a smoothed
+    state would be better per sample, but its error is slow and adds up over the
+    pre-averaging window. Good while the noise per sample stays within a couple of orders of
+    magnitude of the Brownian increment; far beyond, the drift's residual dominates.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model `LinearSecondOrder`.
+    - `x`: measured states, shape `(R, N, m)`.
+    - `dt`: the sample interval, s.
+    - `noise_var`: the states' white-noise variances, shape `(m,)` (the states' units squared).
+    - `perturbation`: `perturbation(x (m,)) -> (m,)`, the fitted drift perturbation `S h`
+      (rate units), like `statespace.DriftStep.perturbation`.
+    - `window`: the pre-averaging window `K` in samples, or None (default) to pick it from the
+      increments' noise-to-signal ratio (clipped to `[2, (N - 1) // 8]`; needs concrete values).
+
+    **Returns:** `(Gamma, window)`: the diffusion `Gamma (d,)` (velocity^2 / s), floored at
+    1e-3 of the targets' mean magnitude so that it can start a search in `log Gamma`, and the
+    window `K` in samples (an int).
     """
     x = jnp.asarray(x)
     e, A_n, B_n, C_n, unit, ratio = _residual_increments(nominal, x, dt, noise_var, perturbation)
@@ -467,14 +525,28 @@ def _window_sum(series, weights):
 
 
 def process_covariances(nominal: LinearSecondOrder, dt: float) -> jax.Array:
-    """`(d, m, m)`: `int_0^dt exp(A s) e_v e_v^T exp(A^T s) ds` for each velocity `v`, the
-    one-step state covariance per unit diffusion of `v` under the nominal dynamics."""
+    """The one-step state covariance per unit diffusion of each velocity under the nominal dynamics.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model `LinearSecondOrder`.
+    - `dt`: the step, s.
+
+    **Returns:** `(d, m, m)`: `int_0^dt exp(A s) e_v e_v^T exp(A^T s) ds` for each velocity `v`."""
     return gramians(state_matrix(nominal), nominal.velocity_index, dt)
 
 
 def gramians(A, velocity_index, dt: float) -> jax.Array:
-    """`(d, m, m)`: the one-step covariance per unit diffusion of each velocity under the
-    linear dynamics `A (m, m)` (Van Loan's matrix exponential)."""
+    """The one-step covariance per unit diffusion of each velocity under linear dynamics (Van
+    Loan's matrix exponential).
+
+    **Arguments:**
+
+    - `A`: the state matrix, shape `(m, m)`.
+    - `velocity_index`: the `d` velocities' positions in the state, a sequence of ints.
+    - `dt`: the step, s.
+
+    **Returns:** `(d, m, m)`: `int_0^dt exp(A s) e_v e_v^T exp(A^T s) ds` for each velocity `v`."""
     m = A.shape[0]
     out = []
     for v in velocity_index:
@@ -487,8 +559,15 @@ def gramians(A, velocity_index, dt: float) -> jax.Array:
 
 
 def unit_gramian(nominal: LinearSecondOrder, dt: float) -> jax.Array:
-    """`(d,)`: the velocity entry of :func:`process_covariances`, the one-step variance of
-    each velocity per unit diffusion (`dt (1 - c dt / m + ...)`)."""
+    """The one-step variance of each velocity per unit diffusion, the velocity entry of
+    `process_covariances` (`dt (1 - c dt / m + ...)`).
+
+    **Arguments:**
+
+    - `nominal`: the nominal model `LinearSecondOrder`.
+    - `dt`: the step, s.
+
+    **Returns:** `(d,)`, in s."""
     Q = process_covariances(nominal, dt)
     v = jnp.asarray(nominal.velocity_index)
     return Q[jnp.arange(v.size), v, v]

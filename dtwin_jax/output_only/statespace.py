@@ -9,10 +9,10 @@ diffusion of velocity `v` (Van Loan, under the drift's local Jacobian), `eps_k ~
 diag(s^2))`. An
 extended Kalman filter gives the likelihood of `Gamma` and of the velocities' noise
 variances (fitted with it: a difference-based noise estimate is good to a few percent, and its
-error moves `Gamma` as much); Newton steps in their logs find the maximum. This uses every sample's information about the diffusion, where a quadratic variation
-of increments drowns: for example 2 at 5% noise the velocity noise per sample is ~400 times
-the Brownian increment: pre-averaged increments put its sigma/m 53% low, the likelihood
-within 1.5%.
+error moves `Gamma` as much); Newton steps in their logs find the maximum. This uses every
+sample's information about the diffusion, where a quadratic variation of increments drowns:
+where the velocity noise per sample is hundreds of times the Brownian increment (example 2),
+pre-averaged increments put the diffusion far too low, and the likelihood stays close.
 
 The Gibbs sampler then sees the EM (Rauch-Tung-Striebel) targets of Eq. 23: the conditional
 expectation, given all measurements, of each squared one-step velocity residual per unit
@@ -52,10 +52,10 @@ __all__ = [
 class DriftStep(eqx.Module):
     """`F(x (m,)) -> (m,)`: one sample step `dt` s of the updated drift
     `dx/dt = A x + S Theta L(x)`, by `substeps` fixed Tsit5 steps (one is plenty at
-    `omega dt <= 0.2`: its error is ~1e-7 of the state, the Brownian increment ~4e-4).
+    `omega dt <= 0.2`: its error is far below the Brownian increment).
 
     `coefficients (r, K)` of `library` for the `regressed` states (pass a
-    :meth:`Library.subset` of the selected terms to keep it cheap). The solver's `step` is
+    `Library.subset` of the selected terms to keep it cheap). The solver's `step` is
     called directly: no adaptive loop, so `F` differentiates in both modes, and as a pytree
     with static structure it reuses compiled code across updates of the same shape.
     """
@@ -71,10 +71,21 @@ class DriftStep(eqx.Module):
     @classmethod
     def from_coefficients(cls, nominal: LinearSecondOrder, library: Library, coefficients, dt: float,
                           smoothing=None):
-        """The drift of `coefficients (r, K)` of `library` for `nominal`'s regressed states,
-        keeping only the terms in use. `smoothing (m,)`: variances over which the non-smooth
-        terms (`sign`, `Abs`) are averaged (:meth:`Library.__call__`): the mean drift over a
-        step whose Brownian increment crosses a friction's discontinuity."""
+        """The drift of `coefficients` of `library` for `nominal`'s regressed states, keeping
+        only the terms in use.
+
+        **Arguments:**
+
+        - `nominal`: the nominal model `LinearSecondOrder`.
+        - `library`: the drift `Library` (no inputs).
+        - `coefficients`: `(r, K)` the coefficients of `library`'s terms in the regressed rows
+          (zero columns are dropped).
+        - `dt`: the sample step, s.
+        - `smoothing`: variances `(m,)` over which the non-smooth terms (`sign`, `Abs`) are
+          averaged (`Library.__call__`): the mean drift over a step whose Brownian increment
+          crosses a friction's discontinuity; or None (default) for exact terms.
+
+        **Returns:** the `DriftStep`, one Tsit5 step per sample."""
         coef = np.asarray(coefficients)
         keep = np.any(coef != 0, axis=0)
         regressed = tuple(int(i) for i in nominal.regressed_index)
@@ -82,21 +93,49 @@ class DriftStep(eqx.Module):
 
     @classmethod
     def true(cls, example) -> "DriftStep":
-        """The true perturbation of a :class:`systems.Example`, for checks and studies."""
+        """The true perturbation of an example, for checks and studies.
+
+        **Arguments:**
+
+        - `example`: a `systems.Example` (its nominal model, output-only library, true
+          coefficients and `dt`).
+
+        **Returns:** the `DriftStep` of the example's true drift."""
         nominal = example.system.nominal
         lib = parse_library(example.library_output_only, nominal.m, 0)
         return cls.from_coefficients(nominal, lib, example.true_coefficients(lib.names), example.dt)
 
     def perturbation(self, x):
-        """Discovered extra rate `(m,)` at `x (m,)`."""
+        """Discovered extra rate at one state.
+
+        **Arguments:**
+
+        - `x`: the state, shape `(m,)`.
+
+        **Returns:** the perturbation `S h(x)`, shape `(m,)` (rate units, zero outside the
+        regressed rows)."""
         h = self.coefficients @ self.library.eval_single(x, None, self.smoothing)
         return jnp.zeros(x.shape[-1], h.dtype).at[jnp.asarray(self.regressed)].set(h)
 
     def rate(self, x):
-        """Updated rate `(m,)` at `x (m,)`, no input."""
+        """Updated rate at one state, no input.
+
+        **Arguments:**
+
+        - `x`: the state, shape `(m,)`.
+
+        **Returns:** the nominal rate plus the perturbation, shape `(m,)` (rate units)."""
         return self.nominal.rate(x, jnp.zeros(self.nominal.n, x.dtype)) + self.perturbation(x)
 
     def __call__(self, x):
+        """One sample step of the updated drift from a state.
+
+        **Arguments:**
+
+        - `x`: the state at the step's start, shape `(m,)`.
+
+        **Returns:** `F(x)`, the state `dt` s later, shape `(m,)`.
+        """
         term = diffrax.ODETerm(lambda t, y, args: self.rate(y))
         solver = diffrax.Tsit5(scan_kind="bounded")  # stage loop differentiable both ways
         h = self.dt / self.substeps
@@ -123,12 +162,20 @@ LINEARIZE_BLOCK = 1024
 
 
 def linearize(step: DriftStep, point) -> Linearization:
-    """Linearize `step` along `point (..., N, m)`, records along the leading axes: all
-    samples at once, not in sequence (in blocks of :data:`LINEARIZE_BLOCK`).
+    """Linearize `step` along a trajectory: all samples at once, not in sequence (in blocks
+    of `LINEARIZE_BLOCK`).
 
     The noise covariance uses the local Jacobian of the drift, not the nominal one: a
     velocity's noise reaches other states through the perturbation (example 3's damage rate
     `gamma x2^2`), and a model without that path reads their residuals as extra diffusion.
+
+    **Arguments:**
+
+    - `step`: the `DriftStep` to linearize.
+    - `point`: the trajectory, shape `(..., N, m)`, records along the leading axes.
+
+    **Returns:** the `Linearization`: `point`, `value (..., N-1, m)`, `jac (..., N-1, m, m)`
+    and `unit_cov (..., N-1, d, m, m)`.
     """
     point = jnp.asarray(point)
     m = point.shape[-1]
@@ -151,14 +198,24 @@ def linearize(step: DriftStep, point) -> Linearization:
 
 
 def local_gramians(J, velocity_index, dt: float, substeps: int = 1, order: int = 6) -> jax.Array:
-    """`(d, m, m)`: the one-step covariance per unit diffusion of each velocity under the
-    local linear dynamics `J (m, m)`, `int_0^dt exp(J s) e_v e_v^T exp(J^T s) ds`.
+    """The one-step covariance per unit diffusion of each velocity under local linear
+    dynamics, `int_0^dt exp(J s) e_v e_v^T exp(J^T s) ds`.
 
     The Taylor series `sum_k h^(k+1) / (k+1)! L^k(e_v e_v^T)`, `L(X) = J X + X J^T`, to
-    `order` over each of `substeps` steps `h` (relative error ~ (2 |J| h)^7 / 8!, 4e-8 at
-    `|J| h = 0.2`, below the drift step's own), chained by `Q <- Phi Q Phi^T + Q_h`.
+    `order` over each of `substeps` steps `h` (relative error ~ `(2 |J| h)^7 / 8!`, below the
+    drift step's own at `|J| h = 0.2`), chained by `Q <- Phi Q Phi^T + Q_h`.
     Batched over samples this is several times cheaper than Van Loan's matrix exponential
-    (:func:`kramers_moyal.gramians`), whose Pade branches all run under `vmap`.
+    (`kramers_moyal.gramians`), whose Pade branches all run under `vmap`.
+
+    **Arguments:**
+
+    - `J`: the drift's local Jacobian, shape `(m, m)`.
+    - `velocity_index`: the `d` velocities' positions in the state, a sequence of ints.
+    - `dt`: the step, s.
+    - `substeps`: the number of steps `h = dt / substeps` (default 1).
+    - `order`: the Taylor series' order over each step (default 6).
+
+    **Returns:** `Q`, shape `(d, m, m)`.
     """
     m = J.shape[0]
     h = dt / substeps
@@ -187,7 +244,7 @@ class Smoothed(NamedTuple):
 
 
 def _filter(lin: Linearization, y, gamma, noise_var) -> Filtered:
-    """Kalman filter (:func:`kalman.kalman_filter`) of `y (N, m)` on the linearized
+    """Kalman filter (`kalman.kalman_filter`) of `y (N, m)` on the linearized
     transition `X_{k+1} = value_k + jac_k (X_k - point_k) + N(0, Q_k)`,
     `Q_k = sum_v gamma_v lin.unit_cov[k, v]`, every state measured with noise variances
     `noise_var (m,)`. The first sample with a flat prior: the state is the measurement,
@@ -198,19 +255,37 @@ def _filter(lin: Linearization, y, gamma, noise_var) -> Filtered:
 
 
 def smoother(lin: Linearization, y, gamma, noise_var) -> Smoothed:
-    """Kalman filter and RTS smoother of `y (N, m)` under `X_{k+1} = F(X_k) + N(0, Q_k)`,
+    """Kalman filter and RTS smoother of one record under `X_{k+1} = F(X_k) + N(0, Q_k)`,
     `F` linearized by `lin`, `Q_k = sum_v gamma_v lin.unit_cov[k, v]`,
-    `y_k = X_k + N(0, diag(noise_var (m,)))`."""
+    `y_k = X_k + N(0, diag(noise_var))`.
+
+    **Arguments:**
+
+    - `lin`: the record's `Linearization` (`N - 1` steps).
+    - `y`: the measured states, shape `(N, m)`.
+    - `gamma`: the velocities' diffusions, shape `(d,)` (velocity^2 / s).
+    - `noise_var`: the measurement noise variances, shape `(m,)` (the states' units squared).
+
+    **Returns:** the `Smoothed` means `(N, m)`, covariances `(N, m, m)`, cross covariances
+    `(N-1, m, m)` and the log-likelihood of `y_1..y_{N-1}` given `y_0`."""
     filtered = _filter(lin, y, gamma, noise_var)
     mean, cov, cross = rts_smoother(filtered, lin.jac)
     return Smoothed(mean, cov, cross, filtered.loglik)
 
 
 def segments(x, length: int = 1000):
-    """Split records `x (R, N, m)` into `(R * S, L, m)` pieces sharing their end samples,
-    `L - 1 = (N - 1) // S` with `S = ceil((N - 1) / length)`; at most `S - 1` trailing
-    samples are dropped. A long record filtered in pieces loses one sample's information per
-    cut and runs `S` filters side by side instead of one long sequential scan."""
+    """Split records into pieces sharing their end samples, `L - 1 = (N - 1) // S` with
+    `S = ceil((N - 1) / length)`; at most `S - 1` trailing samples are dropped.
+
+    A long record filtered in pieces loses one sample's information per cut and runs `S`
+    filters side by side instead of one long sequential scan.
+
+    **Arguments:**
+
+    - `x`: the records, shape `(R, N, m)`.
+    - `length`: the most steps per piece (default 1000).
+
+    **Returns:** the pieces, shape `(R * S, L, m)`, record by record."""
     x = jnp.asarray(x)
     R, N, m = x.shape
     S = max(1, -(-(N - 1) // length))
@@ -252,10 +327,10 @@ def _loglik(params, lin, y, r, velocity_index):
 
 
 def _loglik_derivatives(params, lin, y, r, velocity_index):
-    """`(loglik, gradient (2d,), Hessian (2d, 2d))` of :func:`_loglik` at `params`: forward
+    """`(loglik, gradient (2d,), Hessian (2d, 2d))` of `_loglik` at `params`: forward
     over reverse of one function, so the program holds one copy of the filter's derivative
     (separate value, gradient and Hessian calls compiled three; forward over forward was
-    4x slower to run at 2d = 4)."""
+    slower to run)."""
     def grad_and_value(p):
         value, g = jax.value_and_grad(_loglik)(p, lin, y, r, velocity_index)
         return g, (value, g)
@@ -275,21 +350,34 @@ def diffusion_mle(
     max_iter: int = 11,
     tol: float = 1e-3,
 ):
-    """Maximum-likelihood diffusion `Gamma (d,)` and velocity noise of records `y (R, N, m)`.
+    """Maximum-likelihood diffusion `Gamma (d,)` and velocity noise of records.
 
-    `noise_var (m,)` the states' noise variances, or `(R, m)` one row per record (a sensor
-    whose noise scales with each record's amplitude: a pooled variance would read the
-    loud records' noise as diffusion that grows with the state); the velocities' are a
-    first guess, scaled by a fitted common factor (a difference-based estimate's error of
-    0.5% of `Gamma dt` moves `Gamma` by 1%); `start (d,)` a positive first guess of `Gamma`.
     The transition is linearized along the records, then along the states smoothed at the
     first guess, twice; then in each of `rounds` it is linearized along the states smoothed
     at the current values and Newton steps in the logs (at most a factor e^1.5 each,
     halved while the likelihood falls) find the maximum. Pure and jittable (vmapped over the
     levels and replicates of a study).
-    Returns `(Gamma (d,), Gamma_cov (d, d), noise_var (R, m), lin)`: the inverse
-    observed information of `Gamma` with the noise profiled out, the fitted noise variances
-    and the last linearization (batched over records).
+
+    **Arguments:**
+
+    - `step`: the updated drift's `DriftStep`.
+    - `y`: the measured records, shape `(R, N, m)` (`segments` of them in the update).
+    - `noise_var`: the states' noise variances (the states' units squared), `(m,)`, or
+      `(R, m)` one row per record (a sensor whose noise scales with each record's amplitude:
+      a pooled variance would read the loud records' noise as diffusion that grows with the
+      state); the velocities' are a first guess, scaled by a fitted common factor (a
+      difference-based estimate's error, small beside `Gamma dt`, still moves `Gamma` markedly).
+    - `start`: a positive first guess of `Gamma`, shape `(d,)` (velocity^2 / s).
+    - `rounds`: rounds of linearization and Newton steps after the first guess's two
+      (default 2).
+    - `max_iter`: the most likelihood evaluations per round (default 11).
+    - `tol`: stop a round's Newton steps once the next step of `log Gamma` is below it
+      (default 1e-3).
+
+    **Returns:** `(Gamma, Gamma_cov, noise_var, lin)`: the diffusion `Gamma (d,)`
+    (velocity^2 / s), `Gamma_cov (d, d)` the inverse observed information of `Gamma` with the
+    noise profiled out, the fitted noise variances `(R, m)` and the last `Linearization`
+    (batched over records).
     """
     y = jnp.asarray(y)
     vel = tuple(int(v) for v in step.nominal.velocity_index)
@@ -333,7 +421,7 @@ def _newton(params, args, max_iter, tol: float, d: int, g, H):
     or after `max_iter` evaluations, the last of which takes no step, so the returned
     `(params, gradient, Hessian)` belong together (the information at the maximum);
     with `max_iter = 0` it returns its inputs. Every evaluation is one
-    :func:`_loglik_derivatives` at a trial point: accepted, or the step halved."""
+    `_loglik_derivatives` at a trial point: accepted, or the step halved."""
 
     def newton_step(g, H):
         newton = -jnp.linalg.solve(H, g)
@@ -362,12 +450,22 @@ def _newton(params, args, max_iter, tol: float, d: int, g, H):
 
 @functools.partial(jax.jit, static_argnums=4)
 def diffusion_targets(lin: Linearization, y, noise_var, gamma, velocity_index: tuple[int, ...]):
-    """EM targets of the velocity diffusions at `gamma (d,)`, from records `y (R, N, m)`
-    and their linearizations `lin` (batched over records, from :func:`diffusion_mle`);
-    `velocity_index` the `d` velocities' positions in the state.
+    """EM targets of the velocity diffusions, from smoothed records.
 
     `Y_kv = E[(X_{k+1} - F(X_k))_v^2 | y] / Q_kv[v, v]`, with `E[Gamma_v] = Y_kv` for a
-    constant diffusion. Returns `(Y (R, N-1, d), X (R, N-1, m))`, `X` the smoothed states.
+    constant diffusion.
+
+    **Arguments:**
+
+    - `lin`: the records' `Linearization` (batched over records, from `diffusion_mle`).
+    - `y`: the measured records, shape `(R, N, m)`.
+    - `noise_var`: the measurement noise variances, `(m,)` or `(R, m)` one row per record
+      (the states' units squared).
+    - `gamma`: the diffusions at which to smooth, shape `(d,)` (velocity^2 / s).
+    - `velocity_index`: the `d` velocities' positions in the state, a tuple of ints (static).
+
+    **Returns:** `(Y, X)`: the targets `Y (R, N-1, d)` (velocity^2 / s) and the smoothed states
+    `X (R, N-1, m)` they regress on.
     """
     y = jnp.asarray(y)
     r = _noise_floor(y, noise_var)
@@ -393,10 +491,21 @@ def standardized_innovations(lin: Linearization, y, noise_var, gamma, velocity_i
     """One-step prediction errors of the velocities under the fitted drift and diffusion,
     each divided by its predicted std, and the predicted states they follow.
 
-    `y (R, N, m)` records, `lin` their linearizations (from :func:`diffusion_mle`). Returns
-    `(innovations (R, N-1, d), predicted (R, N-1, m))`: white standard normal, and
-    independent of anything predicted from the past, when the model explains the data; a
-    missing or wrong drift term leaves structure in them against the predicted states.
+    The innovations are white standard normal, and independent of anything predicted from
+    the past, when the model explains the data; a missing or wrong drift term leaves
+    structure in them against the predicted states.
+
+    **Arguments:**
+
+    - `lin`: the records' `Linearization` (batched over records, from `diffusion_mle`).
+    - `y`: the measured records, shape `(R, N, m)`.
+    - `noise_var`: the measurement noise variances, `(m,)` or `(R, m)` one row per record
+      (the states' units squared).
+    - `gamma`: the fitted diffusions, shape `(d,)` (velocity^2 / s).
+    - `velocity_index`: the `d` velocities' positions in the state, a tuple of ints (static).
+
+    **Returns:** `(innovations, predicted)`: the standardized innovations `(R, N-1, d)`
+    (dimensionless) and the predicted states `(R, N-1, m)`.
     """
     y = jnp.asarray(y)
     r = _noise_floor(y, noise_var)

@@ -1,8 +1,8 @@
 """Framework 2 (output-only, the paper's Section 4.2): measured states only. The drift
-perturbation comes from Kramers-Moyal targets (:mod:`dtwin_jax.output_only.kramers_moyal`), then the
+perturbation comes from Kramers-Moyal targets (`dtwin_jax.output_only.kramers_moyal`), then the
 diffusion of every velocity from the Kalman likelihood given that drift
-(:mod:`dtwin_jax.output_only.statespace`), whose EM targets are sampled by the same kernel. The
-numerics are in :mod:`dtwin_jax.output_only.stats`; this module orchestrates them
+(`dtwin_jax.output_only.statespace`), whose EM targets are sampled by the same kernel. The
+numerics are in `dtwin_jax.output_only.stats`; this module orchestrates them
 and checks the result (whitened innovations, the noise correction's margin)."""
 
 from __future__ import annotations
@@ -70,30 +70,40 @@ def update_output_only(
     forget: float = 1.0,
     allow_repeat: bool = False,
 ) -> UpdateResult:
-    """Discover the drift perturbation and the diffusion of ``nominal`` from its response
+    """Discover the drift perturbation and the diffusion of `nominal` from its response
     alone (no force measured: an Ito diffusion driven by white force).
 
     **Arguments:**
 
-    - ``nominal``: the nominal model :class:`~dtwin_jax.models.systems.LinearSecondOrder`.
-    - ``t``: ``(N,)`` sample times, s, uniform.
-    - ``x``: ``(N, m)`` one record (a structure in service) or ``(R, N, m)`` an ensemble of
+    - `nominal`: the nominal model `dtwin_jax.models.systems.LinearSecondOrder`.
+    - `t`: `(N,)` sample times, s, uniform.
+    - `x`: `(N, m)` one record (a structure in service) or `(R, N, m)` an ensemble of
       independent records, every state measured; pooled into one regression. None with
-      ``xdot``: accelerometers alone (ambient vibration,
-      :func:`~dtwin_jax.output_only.accelerometers.update_from_accelerometers`: a
+      `xdot`: accelerometers alone (ambient vibration,
+      `dtwin_jax.output_only.accelerometers.update_from_accelerometers`: a
       constant diffusion).
-    - ``xdot``, ``xdot_names``: the accelerometers' samples and their states (the rates of
-      the velocity states), with ``x=None``; beside ``x`` they are refused in one line.
-    - ``library``: the drift library, a spec (formats.md) or :class:`Library` (default
-      :data:`OUTPUT_ONLY_LIBRARY`).
-    - ``diffusion_library``: the diffusion's, likewise (default :data:`DIFFUSION_LIBRARY`).
-    - ``pip_threshold``, ``settings``, ``seed``, ``progress``: as
-      :func:`~dtwin_jax.input_output.update.update_input_output`.
-    - ``previous``, ``forget``, ``allow_repeat``: a re-update, as there (drift and diffusion).
+    - `xdot`: the accelerometers' samples, `(N, s)` or `(R, N, s)` for `s` measured rates (the
+      rates of the velocity states, acceleration units), with `x=None`; beside `x` it is
+      refused in one line.
+    - `xdot_names`: the states of the columns of `xdot` (None: all `m`), with `xdot`.
+    - `library`: the drift library, a spec (formats.md) or `Library`, or None (default) for
+      `OUTPUT_ONLY_LIBRARY`; no `input` family.
+    - `diffusion_library`: the diffusion's, likewise (None: `DIFFUSION_LIBRARY`); with
+      accelerometers alone only the constant `"terms:1"`.
+    - `pip_threshold`: inclusion probability above which a term is selected, as in
+      `dtwin_jax.input_output.update.update_input_output`.
+    - `settings`: the sampler's `SamplerSettings` (chains, draws, burn-in).
+    - `seed`: the sampler's seed (the diffusion's equations take `seed + 1`).
+    - `progress`: show the stages and a bar of the sweeps.
+    - `previous`: an earlier output-only update of the same twin (same nominal model and
+      libraries), or None: a re-update, as in `update_input_output`, whose drift and
+      diffusion statistics, times `forget`, are added to this window's.
+    - `forget`: the previous statistics' weight, in (0, 1].
+    - `allow_repeat`: take a window already in the history (its data would count twice).
 
-    **Returns:** an :class:`UpdateResult` of mode ``"output-only"``: one ``drift`` equation
-    per regressed state (acceleration units) and one ``diffusion`` equation per velocity (the
-    diagonal ``Gamma_ii = (G G^T)_ii``, velocity^2 / s).
+    **Returns:** an `UpdateResult` of mode `"output-only"`: one `drift` equation
+    per regressed state (acceleration units) and one `diffusion` equation per velocity (the
+    diagonal `Gamma_ii = (G G^T)_ii`, velocity^2 / s).
     """
     start = time.perf_counter()
     if x is None:  # accelerometers alone: ambient vibration
@@ -200,10 +210,24 @@ _drift_pass = aot.exported("drift_pass", static_argnums=(1, 3))(drift_pass)
 
 def drift_statistics(nominal: LinearSecondOrder, lib: Library, x, dt: float, noise_var, settings: SamplerSettings,
                      seed: int) -> tuple[SuffStats, jax.Array]:
-    """:func:`output_only_drift_stats` of records ``x (R, N, m)`` with ``key(seed)``, run as
-    separate programs with the same result: both passes are one program, and the first
-    pass's short run is the drift sampling's program (:func:`sample_equations`), compiled
-    once. Returns ``(stats, margin (q,))``."""
+    """`output_only_drift_stats` of records with `key(seed)`, run as separate programs with
+    the same result: both passes are one program, and the first pass's short run is the drift
+    sampling's program (`sample_equations`), compiled once.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model `LinearSecondOrder`.
+    - `lib`: the drift `Library` (no inputs).
+    - `x`: measured states, shape `(R, N, m)`.
+    - `dt`: the sample interval, s.
+    - `noise_var`: the states' white-noise variances, shape `(m,)` (the states' units squared).
+    - `settings`: the main run's `SamplerSettings` (the short run takes its
+      `first_pass_settings`).
+    - `seed`: the seed whose key's first split drives the short run.
+
+    **Returns:** `(stats, margin)`: the `SuffStats` batched over the `q` regressed states, and
+    `margin (q,)` the `correction_margin` of the corrected Gram matrices before their
+    eigenvalues are floored."""
     R, N, m = x.shape
 
     def one_pass(coef, smoothing, rows):
@@ -216,7 +240,17 @@ def drift_statistics(nominal: LinearSecondOrder, lib: Library, x, dt: float, noi
 
 
 def output_only_library(library, nominal: LinearSecondOrder, default: str) -> Library:
-    """``library`` resolved as in :func:`resolve_library`, ``default`` for None; no inputs."""
+    """`library` resolved as in `resolve_library`, `default` for None; no inputs.
+
+    A library with the `input` family raises `DataError` (output-only data has no inputs).
+
+    **Arguments:**
+
+    - `library`: a spec (formats.md), a `Library`, or None.
+    - `nominal`: the nominal model `LinearSecondOrder` (its `m` states; no inputs).
+    - `default`: the spec to use for None.
+
+    **Returns:** the `Library` for the `m` states."""
     lib = library if isinstance(library, Library) else parse_library(library or default, nominal.m, 0)
     if lib.uses_inputs:
         raise DataError("library family 'input' needs measured inputs; output-only data has none")
@@ -229,9 +263,15 @@ MARGIN_WARN = -0.01
 
 
 def margin_check(margin: float) -> dict:
-    """The result's check of the noise correction: ``margin`` from
-    :func:`~dtwin_jax.output_only.stats.correction_margin`,
-    a warning below :data:`MARGIN_WARN`."""
+    """The result's check of the noise correction: a warning below `MARGIN_WARN`.
+
+    **Arguments:**
+
+    - `margin`: one equation's smallest eigenvalue from
+      `dtwin_jax.output_only.stats.correction_margin`.
+
+    **Returns:** the check, a dict: `ok` (bool), `warnings` (a list of strings, empty when
+    ok) and `min_eigenvalue` (`margin`)."""
     ok = margin >= MARGIN_WARN
     warning = (
         f"noise correction removed more than the data hold (smallest eigenvalue of the corrected "

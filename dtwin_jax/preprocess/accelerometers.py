@@ -1,34 +1,33 @@
 """States from accelerometers alone: the most common instrumentation of a structure in service.
 
-With only the accelerations ``a`` of the degrees of freedom measured (no displacement or
-velocity sensor), the states ``q, v`` must be integrated from ``a``; plain double
-integration drifts (2 s at 1 kHz and 5% noise: the integrated noise exceeds the
+With only the accelerations `a` of the degrees of freedom measured (no displacement or
+velocity sensor), the states `q, v` must be integrated from `a`; plain double
+integration drifts (within seconds of a noisy record the integrated noise exceeds the
 displacement). The low frequencies are anchored by the equation of motion instead. Each
-degree of freedom is the kinematic chain ``dq/dt = v, dv/dt = a`` driven by the measured
+degree of freedom is the kinematic chain `dq/dt = v, dv/dt = a` driven by the measured
 acceleration (held input and trapezoidal smooth part, as
-:func:`dtwin_jax.preprocess.denoise.kinematic_smoother`), and every sample adds the pseudo-measurement
+`dtwin_jax.preprocess.denoise.kinematic_smoother`), and every sample adds the pseudo-measurement
 
     K q + C v - M h(q, v, u) = B u + F0 - M a          (one row per degree of freedom)
 
-with ``h`` the perturbation known so far, linearized at the previous states (a Rauch-Tung-
-Striebel smoother with a measurement matrix per sample). While ``h`` is still being found, the
+with `h` the perturbation known so far, linearized at the previous states (a Rauch-Tung-
+Striebel smoother with a measurement matrix per sample). While `h` is still being found, the
 anchor's noise is raised so that it takes over only below the lowest natural frequency over
-``CROSSOVER``; once the loop settles, the anchor keeps the accelerometers' own noise.
+`CROSSOVER`; once the loop settles, the anchor keeps the accelerometers' own noise.
 
-The loop (:func:`accelerometer_states`) starts from the equivalent linear model (the nominal
+The loop (`accelerometer_states`) starts from the equivalent linear model (the nominal
 plus the linear correction that fits the accelerations best, found without any state
 estimate), then alternates a short sampler run on the weak-form statistics at the states
-(:mod:`dtwin_jax.preprocess.weak_form_accelerometers`: the nominal part of every row exact, whatever the
+(`dtwin_jax.preprocess.weak_form_accelerometers`: the nominal part of every row exact, whatever the
 states) with a Gauss-Newton step of the smoother. The final regression is that weak form at
 the final states; draws of the states' estimation error (Durbin and Koopman's simulation
 smoother) put their effect on the selected terms into its row covariance.
 
-Measured (``benchmarks/zoo.py --layout accelerometers``; before, the plain fixed point with a
-high-passed pointwise regression: 60% exact support, 41% HDI coverage on 20 members): see the
-README's sensors table.
+Measurements (`benchmarks/zoo.py --layout accelerometers`, against the former plain fixed point
+with a high-passed pointwise regression): see the README's sensors table.
 
 Output-only (no force measured) from accelerometers uses the same states with the force white and
-unknown (:mod:`dtwin_jax.output_only.accelerometers`).
+unknown (`dtwin_jax.output_only.accelerometers`).
 """
 
 from __future__ import annotations
@@ -70,16 +69,15 @@ MAX_FEEDBACK = 0.99
 def check_accelerometer_layout(nominal: LinearSecondOrder, xdot_index) -> None:
     """Refuse, in one line, an accelerometer-only layout whose states cannot be estimated.
 
+    Raises a `DataError` when a degree of freedom has no accelerometer (the rate of its
+    velocity state), when the model has extra states (nothing measures them), or when `K` is
+    not positive definite (a free-floating mode has no quasi-static anchor).
+
     **Arguments:**
 
-    - ``nominal``: the nominal model (``d`` degrees of freedom, ``E`` extra states).
-    - ``xdot_index``: indices of the measured rates (``xdot_names``).
-
-    **Returns:**
-
-    None. Raises :class:`DataError` when a degree of freedom has no accelerometer (the rate of
-    its velocity state), when the model has extra states (nothing measures them), or when
-    ``K`` is not positive definite (a free-floating mode has no quasi-static anchor)."""
+    - `nominal`: the nominal model (`d` degrees of freedom, `E` extra states).
+    - `xdot_index`: indices of the measured rates (`xdot_names`) into the `m` states.
+    """
     names = nominal.state_names
     missing = [names[i] for i in nominal.velocity_index if i not in tuple(xdot_index)]
     if missing:
@@ -96,20 +94,20 @@ def check_accelerometer_layout(nominal: LinearSecondOrder, xdot_index) -> None:
 
 
 def accelerometer_layout(nominal: LinearSecondOrder, xdot, xdot_names, u, refine: bool = False) -> tuple:
-    """Check a layout without ``x`` and stand an empty ``x`` in for it.
+    """Check a layout without `x` and stand an empty `x` in for it.
 
     **Arguments:**
 
-    - ``nominal``: the nominal model.
-    - ``xdot``: ``(N, s)`` or ``(R, N, s)`` measured rates, or None.
-    - ``xdot_names``: their states (None: all ``m``).
-    - ``u``: the measured inputs, or None (output-only).
-    - ``refine``: whether an output-error refinement is asked for (it fits measured states).
+    - `nominal`: the nominal model.
+    - `xdot`: `(N, s)` or `(R, N, s)` measured rates, or None.
+    - `xdot_names`: their states, or None (all `m`).
+    - `u`: the measured inputs, or None (output-only); the checks do not use them.
+    - `refine`: whether an output-error refinement is asked for (it fits measured states).
 
-    **Returns:**
-
-    ``(x (..., N, 0), x_names [])``. Raises a one-line :class:`DataError` naming the missing
-    measurement (see :func:`check_accelerometer_layout`)."""
+    **Returns:** `(x, x_names)`: an empty `x` of shape `(..., N, 0)` and the empty list of its
+    names. Raises a one-line `DataError` naming the missing measurement (see
+    `check_accelerometer_layout`).
+    """
     from dtwin_jax.models.systems import real_array
     from dtwin_jax.preprocess.estimate import measured_index
 
@@ -123,9 +121,9 @@ def accelerometer_layout(nominal: LinearSecondOrder, xdot, xdot_names, u, refine
 
 
 def _drive(nominal: LinearSecondOrder, a, u):
-    """The kinematic chains' known input per step ``(R, N-1, 2d)``: the double and single
-    integrals over the step of ``a (R, N, d)``, its input part held (``u (R, N, n)``, or None)
-    and its smooth part trapezoidal (as :func:`dtwin_jax.preprocess.denoise.kinematic_smoother`)."""
+    """The kinematic chains' known input per step `(R, N-1, 2d)`: the double and single
+    integrals over the step of `a (R, N, d)`, its input part held (`u (R, N, n)`, or None)
+    and its smooth part trapezoidal (as `dtwin_jax.preprocess.denoise.kinematic_smoother`)."""
     held = np.zeros_like(a) if u is None else np.linalg.solve(np.asarray(nominal.M), np.asarray(nominal.B) @ np.moveaxis(u, -1, -2)).swapaxes(-1, -2)
     smooth = a - held
     s0, s1, h = smooth[:, :-1], smooth[:, 1:], held[:, :-1]
@@ -134,8 +132,8 @@ def _drive(nominal: LinearSecondOrder, a, u):
 
 @jax.jit
 def _smooth(F, c, Q, H, z, r, m0, P0):
-    """RTS smoothed means ``(R, N, S)`` of records ``z (R, N, p)`` with drives ``c (R, N-1, S)``
-    and measurement matrices ``H (R, N, p, S)``."""
+    """RTS smoothed means `(R, N, S)` of records `z (R, N, p)` with drives `c (R, N-1, S)`
+    and measurement matrices `H (R, N, p, S)`."""
     def one(cc, hh, zz, mm):
         return rts_smoother(kalman_filter(F, cc, Q, hh, None, r, zz, mm, P0), F)[0]
 
@@ -143,7 +141,7 @@ def _smooth(F, c, Q, H, z, r, m0, P0):
 
 
 def _error_draws(F, Q, H, r, P0, num: int, seed: int) -> np.ndarray:
-    """``num`` draws ``(num, R, N, S)`` of the smoother's estimation error (Durbin and Koopman's
+    """`num` draws `(num, R, N, S)` of the smoother's estimation error (Durbin and Koopman's
     simulation smoother): states and measurements simulated from the model, minus what the
     smoother makes of those measurements."""
     R, N, p, S = H.shape
@@ -172,29 +170,29 @@ def anchored_smoother(nominal: LinearSecondOrder, dt: float, a, u=None, anchor=N
 
     **Arguments:**
 
-    - ``nominal``: the nominal model, ``d`` degrees of freedom, ``K`` positive definite.
-    - ``dt``: sample step, s.
-    - ``a``: ``(R, N, d)`` measured accelerations of the degrees of freedom, m/s^2 (state units / s^2).
-    - ``u``: ``(R, N, n)`` measured inputs, held over each step, or None (output-only: the force
+    - `nominal`: the nominal model, `d` degrees of freedom, `K` positive definite.
+    - `dt`: sample step, s.
+    - `a`: `(R, N, d)` measured accelerations of the degrees of freedom, m/s^2 (state units / s^2).
+    - `u`: `(R, N, n)` measured inputs, held over each step, or None (output-only: the force
       is unknown and white).
-    - ``anchor``: ``(R, N, d)`` known force added to the anchor's right-hand side (force
-      units): the perturbation ``M h(x)`` known so far, or its linearization's constant part.
-    - ``jacobian``: ``(R, N, d, 2d)``, the perturbation's force ``M dh/dx`` at a previous
-      estimate (a Gauss-Newton step: the anchor then reads ``[K C] x - M dh/dx x``), or None.
-    - ``crossover``: the anchor's noise is raised so that it takes over only below the lowest
+    - `anchor`: `(R, N, d)` known force added to the anchor's right-hand side (force
+      units): the perturbation `M h(x)` known so far, or its linearization's constant part.
+    - `jacobian`: `(R, N, d, 2d)`, the perturbation's force `M dh/dx` at a previous
+      estimate (a Gauss-Newton step: the anchor then reads `[K C] x - M dh/dx x`), or None.
+    - `crossover`: the anchor's noise is raised so that it takes over only below the lowest
       natural frequency over this (a perturbation not yet known cannot bias the states above
       it); None: its noise is the accelerometers' alone (the perturbation is known).
-    - ``force_variance``: ``(d,)`` variance per sample of the unmeasured force's error in the
+    - `force_variance`: `(d,)` variance per sample of the unmeasured force's error in the
       anchor (force units^2), added to its noise; None: zero.
-    - ``error_draws``: also return this many draws of the estimation error, ``(S, R, N, 2d)``
-      (``info["error_draws"]``), from ``seed``.
-    - ``acceleration_noise_std``: ``(d,)`` the accelerometers' noise std, or None (the
+    - `error_draws`: also return this many draws `S` of the estimation error, `(S, R, N, 2d)`
+      (`info["error_draws"]`); 0 (default): none.
+    - `seed`: the seed of the error draws.
+    - `acceleration_noise_std`: `(d,)` the accelerometers' noise std, or None (the
       Savitzky-Golay residual of the accelerations' smooth part).
 
-    **Returns:**
-
-    ``(x (R, N, 2d), info)``: smoothed ``[q, v]`` and a dict of the acceleration noise std
-    ``(d,)`` and the anchor's noise std ``(d,)`` used."""
+    **Returns:** `(x, info)`: the smoothed `[q, v]`, `(R, N, 2d)`, and a dict of the
+    acceleration noise std `(d,)` and the anchor's noise std `(d,)` used (and the error
+    draws, when asked for)."""
     a = np.asarray(a, dtype=np.float64)
     R, N, d = a.shape
     M, C, K = (np.asarray(getattr(nominal, k), dtype=np.float64) for k in ("M", "C", "K"))
@@ -240,7 +238,7 @@ def anchored_smoother(nominal: LinearSecondOrder, dt: float, a, u=None, anchor=N
 
 @functools.partial(jax.jit, static_argnums=(0,))
 def _force_and_jacobian(lib, M, coef, x, u):
-    """``M h(x)`` and its Jacobian per sample, ``x (N, m)``, ``u (N, n)``: one program per library
+    """`M h(x)` and its Jacobian per sample, `x (N, m)`, `u (N, n)`: one program per library
     (the coefficients are arguments, not constants folded into a new program each step)."""
     def force(xx, uu):
         return M @ (coef @ lib(xx[None], uu[None])[0])
@@ -249,8 +247,8 @@ def _force_and_jacobian(lib, M, coef, x, u):
 
 
 def _linearized(nominal: LinearSecondOrder, lib, coef, x, u) -> tuple[np.ndarray, np.ndarray]:
-    """The perturbation's force ``M h(x) (R, N, d)`` under coefficients ``coef (q, K)`` and its
-    Jacobian in the states ``(R, N, d, m)``."""
+    """The perturbation's force `M h(x) (R, N, d)` under coefficients `coef (q, K)` and its
+    Jacobian in the states `(R, N, d, m)`."""
     R, N, m = x.shape
     value, jac = _force_and_jacobian(lib, jnp.asarray(nominal.M), jnp.asarray(coef), jnp.asarray(x.reshape(-1, m)),
                                      jnp.asarray(np.reshape(u, (R * N, -1))))
@@ -265,44 +263,46 @@ def accelerometer_states(nominal: LinearSecondOrder, dt: float, xdot, xdot_index
     """Every state and rate from accelerometers and the force, the twin in the anchor's loop.
 
     The first states come from the anchor of the equivalent linear model (the nominal plus
-    the linear correction that best fits the accelerations, :func:`equivalent_linear`; the
+    the linear correction that best fits the accelerations, `equivalent_linear`; the
     nominal when that is not stable): a hardening spring larger than the nominal stiffness
-    would otherwise pull them 10% off. Then, in turn, a short sampler run on the weak-form
-    statistics at the states selects terms (``select``), and the anchored smoother runs
+    would otherwise pull them well off. Then, in turn, a short sampler run on the weak-form
+    statistics at the states selects terms (`select`), and the anchored smoother runs
     again with their force linearized at the states (Gauss-Newton: a cubic stiffer than the
     nominal made the plain fixed point diverge). Once two selections in a row agree, the
-    support stays and its coefficients come from least squares on the weak rows. Once this settles with the crossover, it
-    goes on with the anchor at the accelerometers' own noise.
+    support stays and its coefficients come from least squares on the weak rows. Once this
+    settles with the crossover, it goes on with the anchor at the accelerometers' own noise.
 
     **Arguments:**
 
-    - ``nominal``: the nominal model (checked by :func:`check_accelerometer_layout`).
-    - ``dt``: sample step, s.
-    - ``xdot``: ``(R, N, s)`` measured rates of the states ``xdot_index``; those of the velocity
+    - `nominal`: the nominal model (checked by `check_accelerometer_layout`).
+    - `dt`: sample step, s.
+    - `xdot`: `(R, N, s)` measured rates of the states `xdot_index`; those of the velocity
       states are the accelerations (m/s^2).
-    - ``u``: ``(R, N, n)`` measured inputs.
-    - ``lib``: the library whose selected terms form ``h``.
-    - ``select``: ``select(x (R, N, m)) -> (q, K)`` coefficients of the perturbation at these
-      states (:func:`sampler_selection`).
-    - ``crossover``: of the first phase (:func:`anchored_smoother`).
-    - ``max_iterations``: most Gauss-Newton steps.
-    - ``interpolation``: the inputs' (``"held"`` or ``"bandlimited"``).
-    - ``error_draws``: draws of the final states' estimation error, for the errors in
-      variables of the regression; ``seed`` draws them.
-    - ``force_variance``: ``(d,)`` variance per sample of an unmeasured force in the anchor
-      (:func:`anchored_smoother`), or None.
-    - ``acceleration_noise_std``: ``(d,)`` the accelerometers' noise std, or None (estimated).
-    - ``refit``: ``refit(x, index) -> (P,)`` the settled support's coefficients at states
-      ``x``, ``index`` a list of ``(equation, column)``; None: generalized least squares on
+    - `xdot_index`: indices of the measured rates' states into the `m` states (every velocity
+      state among them).
+    - `u`: `(R, N, n)` measured inputs.
+    - `lib`: the library whose selected terms form `h`.
+    - `select`: `select(x (R, N, m)) -> (q, K)` coefficients of the perturbation at these
+      states (`sampler_selection`).
+    - `crossover`: of the first phase (`anchored_smoother`).
+    - `max_iterations`: most Gauss-Newton steps.
+    - `interpolation`: the inputs' (`"held"` or `"bandlimited"`).
+    - `error_draws`: draws of the final states' estimation error, for the errors in
+      variables of the regression (0: none).
+    - `seed`: the seed of those draws.
+    - `force_variance`: `(d,)` variance per sample of an unmeasured force in the anchor
+      (`anchored_smoother`), or None.
+    - `acceleration_noise_std`: `(d,)` the accelerometers' noise std, or None (estimated).
+    - `refit`: `refit(x, index) -> (P,)` the settled support's coefficients at states
+      `x`, `index` a list of `(equation, column)`; None: generalized least squares on
       the weak rows (output-only passes its own rows' fit).
 
-    **Returns:**
-
-    ``(x (R, N, m), rates (R, N, m), info)``: estimated states; rates whose velocity rows are
-    the measured accelerations and whose displacement rows are the estimated velocities (or
-    the measured ones); and a dict saying how (method, iterations, the terms in the anchor,
-    whether the states converged, noise levels; ``info["error_draws"] (S, R, N, m)`` and ``info["coefficients"] (q, K)``
-    for :func:`~dtwin_jax.preprocess.weak_form_accelerometers.accelerometer_weak_stats`)."""
+    **Returns:** `(x, rates, info)`: the estimated states `(R, N, m)`; their rates `(R, N, m)`,
+    whose velocity rows are the measured accelerations and whose displacement rows are the
+    estimated velocities (or the measured ones); and a dict saying how (method, iterations,
+    the terms in the anchor, whether the states converged, noise levels;
+    `info["error_draws"] (S, R, N, m)` and `info["coefficients"] (q, K)` for
+    `dtwin_jax.preprocess.weak_form_accelerometers.accelerometer_weak_stats`)."""
     from dtwin_jax.preprocess.weak_form_accelerometers import equivalent_linear
 
     d = nominal.d
@@ -381,7 +381,7 @@ def accelerometer_states(nominal: LinearSecondOrder, dt: float, xdot, xdot_index
 
 
 def unsettled_warnings(info: dict) -> list[str]:
-    """A warning when :func:`accelerometer_states` ran out of iterations before its first
+    """A warning when `accelerometer_states` ran out of iterations before its first
     phase (the anchor below the crossover) settled: the states then follow a selection that
     keeps changing, and the terms regressed on them are not to be trusted, however sharp
     their intervals. A loop that ends unconverged in its second phase is not warned about:
@@ -390,7 +390,7 @@ def unsettled_warnings(info: dict) -> list[str]:
 
     **Arguments:**
 
-    - ``info``: the states' ``info`` dict of :func:`accelerometer_states`.
+    - `info`: the states' `info` dict of `accelerometer_states`.
 
     **Returns:** a list of zero or one warning lines."""
     if info.get("crossover_released", True):
@@ -403,13 +403,27 @@ def unsettled_warnings(info: dict) -> list[str]:
 
 def sampler_selection(nominal: LinearSecondOrder, dt: float, a, lib, u, settings, seed: int,
                       interpolation: str = "held"):
-    """The ``select`` of :func:`accelerometer_states`: the coefficients of the terms with
-    inclusion probability above 1/2 (the posterior mean with zeros counted spreads weight over
-    a large library's look-alikes, ``x1**6`` and the like, whose linearization threw the
-    loop off) in a short sampler run
-    (:func:`~dtwin_jax.output_only.stats.first_pass_settings`) on the weak-form
-    statistics of accelerations ``a (R, N, d)`` and inputs ``u (R, N, n)`` at states
-    ``x (R, N, m)``."""
+    """The `select` of `accelerometer_states`: coefficients from a short sampler run.
+
+    `select(x)` returns the coefficients of the terms with inclusion probability above 1/2
+    (the posterior mean with zeros counted spreads weight over a large library's look-alikes,
+    `x1**6` and the like, whose linearization threw the loop off) in a short sampler run
+    (`dtwin_jax.output_only.stats.first_pass_settings`) on the weak-form statistics of the
+    accelerations and inputs at states `x (R, N, m)`.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model.
+    - `dt`: sample step, s.
+    - `a`: `(R, N, d)` measured accelerations.
+    - `lib`: the library.
+    - `u`: `(R, N, n)` measured inputs.
+    - `settings`: the update's `SamplerSettings` (shortened by `first_pass_settings`).
+    - `seed`: the sampler's seed.
+    - `interpolation`: the inputs' (`"held"` or `"bandlimited"`).
+
+    **Returns:** the function `select(x (R, N, m)) -> (q, K)`, the selected coefficients of the
+    `q` regressed equations on the library's `K` columns (zero off the selection)."""
     from dtwin_jax.output_only.stats import first_pass_settings
     from dtwin_jax.preprocess.weak_form_accelerometers import accelerometer_weak_stats
     from dtwin_jax.update.sampling import posteriors, sample_equations
@@ -425,8 +439,8 @@ def sampler_selection(nominal: LinearSecondOrder, dt: float, a, lib, u, settings
 
 
 def _selected_fit(nominal, lib, dt, a, u, x, index, interpolation) -> np.ndarray:
-    """Generalized least squares of the selected terms ``index [(equation, column)]`` on the
-    weak rows at states ``x``, stacked in ``index`` order."""
+    """Generalized least squares of the selected terms `index [(equation, column)]` on the
+    weak rows at states `x`, stacked in `index` order."""
     from dtwin_jax.preprocess.weak_form_accelerometers import accelerometer_weak_stats
 
     stats, _ = accelerometer_weak_stats(nominal, lib, dt, a, u, x, interpolation=interpolation, equation_error=False)
@@ -434,8 +448,16 @@ def _selected_fit(nominal, lib, dt, a, u, x, index, interpolation) -> np.ndarray
 
 
 def selected_least_squares(stats, index) -> np.ndarray:
-    """Least squares of the terms ``index [(equation, column)]`` from batched statistics
-    ``stats`` (:class:`~dtwin_jax.sampler.SuffStats`), stacked in ``index`` order."""
+    """Least squares of the selected terms from batched statistics.
+
+    **Arguments:**
+
+    - `stats`: `dtwin_jax.sampler.SuffStats` batched over the equations (`gram (q, K, K)`,
+      `xty (q, K)`).
+    - `index`: the terms, a list of `(equation, column)`.
+
+    **Returns:** the coefficients `(P,)`, in `index` order (each equation's terms fitted
+    together)."""
     gram, xty = np.asarray(stats.gram), np.asarray(stats.xty)
     out = np.zeros(len(index))
     for e in sorted({e for e, _ in index}):
@@ -450,28 +472,35 @@ def state_feedback(nominal: LinearSecondOrder, lib, dt: float, a, u, x, coef, er
     """How much the anchor's loop feeds the coefficients back into themselves, and the states'
     own uncertainty: the widening of the selected terms' posterior.
 
-    The loop's estimate is a fixed point ``theta = T(theta)``: the regression on the states
-    that the anchor with ``theta`` gives. Where the states follow the anchor, a change of
-    ``theta`` comes back nearly unchanged (``T'`` has an eigenvalue near 1: a two-storey
-    shear frame's cubic coupling, whose common-mode drift accelerometers do not fix, measured
-    0.93), and the data cannot tell those coefficients apart although each regression on
-    fixed states is sharp (zoo-0018: 11% off, posterior std 0.5%). By the delta method, the
-    fixed point's error is ``(I - T')^-1`` times the regression's own, which is the sampler's
+    The loop's estimate is a fixed point `theta = T(theta)`: the regression on the states
+    that the anchor with `theta` gives. Where the states follow the anchor, a change of
+    `theta` comes back nearly unchanged (`T'` has an eigenvalue near 1: a two-storey
+    shear frame's cubic coupling, whose common-mode drift accelerometers do not fix), and the
+    data cannot tell those coefficients apart although each regression on fixed states is
+    sharp (zoo-0018: the coefficient off by many times its posterior std). By the delta method, the
+    fixed point's error is `(I - T')^-1` times the regression's own, which is the sampler's
     spread plus that of the fit over draws of the states' estimation error.
 
     **Arguments:**
 
-    - ``nominal``, ``lib``, ``dt``, ``interpolation``: as :func:`accelerometer_states`.
-    - ``a``: ``(R, N, d)`` accelerations; ``u``: ``(R, N, n)`` inputs.
-    - ``x``: ``(R, N, m)`` the loop's final states; ``coef``: ``(q, K)`` its coefficients.
-    - ``error_draws``: ``(S, R, N, m)`` draws of the states' estimation error.
-    - ``steps``: Gauss-Newton steps of the anchor per evaluation of ``T``.
-    - ``max_gain``: ``T'`` is scaled to at most this spectral radius (a neutral direction then
-      widens ``(1 - max_gain)^-1/2`` times); beyond 1 it is not used.
+    - `nominal`: the nominal model, as in `accelerometer_states`.
+    - `lib`: the library, as in `accelerometer_states`.
+    - `dt`: sample step, s.
+    - `a`: `(R, N, d)` measured accelerations.
+    - `u`: `(R, N, n)` measured inputs.
+    - `x`: `(R, N, m)` the loop's final states.
+    - `coef`: `(q, K)` the loop's final coefficients (nonzero: the selected terms).
+    - `error_draws`: `(S, R, N, m)` draws of the states' estimation error.
+    - `interpolation`: the inputs' (`"held"` or `"bandlimited"`).
+    - `steps`: Gauss-Newton steps of the anchor per evaluation of `T`.
+    - `max_gain`: `T'` is scaled to at most this spectral radius (a neutral direction then
+      widens `(1 - max_gain)^-1/2` times); `T'` with a spectral radius beyond 1 is not used
+      (nothing widened).
 
-    **Returns:** ``{"index": [(equation, column)], "gain": (P, P) (I - T')^-1/2, "extra": (P, P)
-    covariance of the fit over the error draws, "eigenvalues": of T'}``; an empty index when
-    nothing is selected."""
+    **Returns:** a dict: `"index"`, the selected terms `[(equation, column)]` (`P` of them);
+    `"gain"`, `(I - T')^-1/2`, `(P, P)`; `"extra"`, the `(P, P)` covariance of the fit over
+    the error draws; `"eigenvalues"`, the moduli of the eigenvalues of `T'`, largest first.
+    An empty index when nothing is selected."""
     coef = np.asarray(coef)
     index = [(e, int(k)) for e in range(coef.shape[0]) for k in np.flatnonzero(coef[e])]
     if not index:
@@ -511,11 +540,21 @@ def state_feedback(nominal: LinearSecondOrder, lib, dt: float, a, u, x, coef, er
 
 
 def widened_draws(theta, gamma, feedback: dict, seed: int = 0) -> np.ndarray:
-    """The selected terms' draws widened by :func:`state_feedback`: ``mean + G (theta - mean + e)``
-    with ``G = (I - T')^-1/2`` and ``e`` Gaussian with the error draws' covariance.
+    """The selected terms' draws widened by `state_feedback`.
 
-    ``theta``, ``gamma``: ``(q, chains, draws, K)``; each term's mean is over the draws that
-    include it, and a draw that excludes a term keeps it at zero. Returns the new ``theta``."""
+    Each draw becomes `mean + G (theta - mean + e)` with `G = (I - T')^-1/2` and `e` Gaussian
+    with the error draws' covariance; each term's mean is over the draws that include it, and
+    a draw that excludes a term keeps it at zero.
+
+    **Arguments:**
+
+    - `theta`: `(q, chains, draws, K)` the sampler's coefficient draws.
+    - `gamma`: `(q, chains, draws, K)` the inclusion indicators of those draws.
+    - `feedback`: the dict of `state_feedback`.
+    - `seed`: the seed of the Gaussian `e`.
+
+    **Returns:** the widened draws, a new `theta` `(q, chains, draws, K)` (a copy; unchanged
+    when nothing is selected)."""
     index = feedback["index"]
     theta = np.array(theta, dtype=np.float64, copy=True)
     if not index:

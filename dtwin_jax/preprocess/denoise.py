@@ -2,18 +2,18 @@
 
 Noise in the states is an errors-in-variables error: it sits inside the library columns and
 inside the nominal rates removed from the target, and biases the coefficients (plain least
-squares on example 1's ``x1**3`` at 5% noise comes out about 2% low). Two estimators:
+squares on example 1's `x1**3` with a few percent noise comes out low). Two estimators:
 
-* :func:`kinematic_smoother` (used when rates are measured): a Rauch-Tung-Striebel smoother on
-  the exact kinematic chains ``dq/dt = v``, ``dv/dt = a`` (and ``de/dt = edot`` for extra
+* `kinematic_smoother` (used when rates are measured): a Rauch-Tung-Striebel smoother on
+  the exact kinematic chains `dq/dt = v`, `dv/dt = a` (and `de/dt = edot` for extra
   states) driven by the measured rates. It fuses displacement, velocity and acceleration
   sensors: at low frequency it trusts the states, at high frequency the integrated rates.
   No model of the (unknown) perturbed dynamics enters, only kinematics.
-* :func:`savgol_states` (when rates are not measured): a Savitzky-Golay filter whose cutoff is
+* `savgol_states` (when rates are not measured): a Savitzky-Golay filter whose cutoff is
   matched to the sampling rate and to the nominal model's highest natural frequency.
 
 Sensor noise levels are estimated from the data: white noise is what a Savitzky-Golay
-projection leaves behind, ``var(s - SG(s)) = sigma^2 (1 - h_0)`` with ``h_0`` the filter's centre
+projection leaves behind, `var(s - SG(s)) = sigma^2 (1 - h_0)` with `h_0` the filter's centre
 tap, because the signal lives well below the filter's cutoff.
 """
 
@@ -46,15 +46,35 @@ _ORDER = 4
 
 
 def savgol_design_ok(nominal: LinearSecondOrder, dt: float) -> bool:
-    """Whether the Savitzky-Golay filters can put their cutoff at 8x the highest nominal
-    natural frequency: not when that is above the Nyquist frequency (a few samples per
-    period), where the shortest window's derivative gain already falls (0.83 at 100 Hz,
-    0.43 at 150 Hz on the Silverbox's 610 Hz sampling) and biases the stiffness."""
+    """Whether the Savitzky-Golay filters can put their cutoff at 8x the highest nominal natural frequency.
+
+    Not when that is above the Nyquist frequency (a few samples per period), where the
+    shortest window's derivative gain already falls well below 1 and biases the stiffness.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model (its highest natural frequency).
+    - `dt`: sample step, s.
+
+    **Returns:** True when 8 times the highest natural frequency is below the Nyquist
+    frequency `0.5 / dt`.
+    """
     return 8.0 * highest_natural_frequency_hz(nominal) < 0.5 / dt
 
 
 def auto_half_width(nominal: LinearSecondOrder, dt: float, num_samples: int) -> int:
-    """Savitzky-Golay half width matched to ``dt`` and the nominal band (order 4)."""
+    """Savitzky-Golay half width (order 4) matched to `dt` and the nominal band.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model (its highest natural frequency sets the cutoff,
+      `measurement.smoothing_half_width`).
+    - `dt`: sample step, s.
+    - `num_samples`: samples per record `N`.
+
+    **Returns:** the half width, samples, at most `(N - 1) // 2`; without stiffness, a window
+    of about 1% of the record (at least 3).
+    """
     f_hz = highest_natural_frequency_hz(nominal)
     if f_hz <= 0:  # no stiffness: a window of 1% of the record
         half_width = max(3, num_samples // 200)
@@ -65,7 +85,18 @@ def auto_half_width(nominal: LinearSecondOrder, dt: float, num_samples: int) -> 
 
 @functools.partial(jax.jit, static_argnums=1)  # one program (eagerly, each operation was one)
 def noise_std(signal, half_width: int) -> jax.Array:
-    """Std of white noise on each column of ``signal (..., N, c)``, from the SG residual."""
+    """Std of white noise on each column of a signal, from the Savitzky-Golay residual.
+
+    The residual's variance is `sigma^2 (1 - h_0)` with `h_0` the filter's centre tap (order
+    4); the edges, fitted one-sided, are left out. Jitted (`half_width` static).
+
+    **Arguments:**
+
+    - `signal`: `(..., N, c)` the signal, samples along the second-to-last axis.
+    - `half_width`: the filter's half width, samples (static).
+
+    **Returns:** the noise std `(..., c)`, in the signal's units.
+    """
     h0 = float(savgol_coefficients(half_width, _ORDER)[half_width])
     resid = signal - smooth(signal, half_width, _ORDER)
     core = resid[..., half_width:-half_width, :]  # the edges use one-sided fits
@@ -73,33 +104,41 @@ def noise_std(signal, half_width: int) -> jax.Array:
 
 
 def savgol_states(x, half_width: int):
-    """Savitzky-Golay smoothing (order 4) of states ``x (..., N, m)``."""
+    """Savitzky-Golay smoothing (order 4) of states.
+
+    **Arguments:**
+
+    - `x`: `(..., N, m)` states.
+    - `half_width`: the filter's half width, samples.
+
+    **Returns:** the smoothed states, `(..., N, m)`.
+    """
     return smooth(x, half_width, _ORDER)
 
 
 def _filter(z, w, F, G, Q, r_diag):
-    """Kalman filter (:func:`kalman.kalman_filter`) of the kinematic chain
-    ``s_{k+1} = F s_k + G w_k + noise(Q)``, ``z_k = s_k + noise(r_diag)``: ``z (N, p)``
-    measured states, ``w (N-1, p)`` known inputs, ``r_diag (p,)`` measurement variances.
+    """Kalman filter (`kalman.kalman_filter`) of the kinematic chain
+    `s_{k+1} = F s_k + G w_k + noise(Q)`, `z_k = s_k + noise(r_diag)`: `z (N, p)`
+    measured states, `w (N-1, p)` known inputs, `r_diag (p,)` measurement variances.
 
-    The first sample under a prior of the measurement itself with ``1e6`` times its noise,
-    updated by it in closed form (``s_0 = z_0``, ``P_0 = R 1e6 / (1e6 + 1)``), and left out of
-    the likelihood, which is that of ``z_1..z_{N-1}`` given ``z_0``.
+    The first sample under a prior of the measurement itself with `1e6` times its noise,
+    updated by it in closed form (`s_0 = z_0`, `P_0 = R 1e6 / (1e6 + 1)`), and left out of
+    the likelihood, which is that of `z_1..z_{N-1}` given `z_0`.
     """
     P0 = jnp.diag(r_diag * (1e6 / (1e6 + 1.0)))
     return kalman_filter(F, w @ G.T, Q, None, None, r_diag, z, z[0], P0, update_first=False)
 
 
 def _rts(z, w, F, G, Q, r_diag):
-    """RTS smoother of the model of :func:`_filter`: smoothed states ``(N, p)``."""
+    """RTS smoother of the model of `_filter`: smoothed states `(N, p)`."""
     return rts_smoother(_filter(z, w, F, G, Q, r_diag), F)[0]
 
 
 def _fit_noise(z, w, F, G, Q_unit, r0, q0, iterations: int = 10):
-    """Maximum-likelihood measurement variances ``(p,)`` and process-noise scale ``()`` of
-    the model of :func:`_filter` with ``Q = q Q_unit``, from first guesses ``r0``, ``q0``.
+    """Maximum-likelihood measurement variances `(p,)` and process-noise scale `()` of
+    the model of `_filter` with `Q = q Q_unit`, from first guesses `r0`, `q0`.
 
-    Newton steps in the log-variances (:func:`kalman.newton_log_variances`); fixed
+    Newton steps in the log-variances (`kalman.newton_log_variances`); fixed
     iterations, so it jits and vmaps. Floors at 1e-10 of the guesses keep a noise-free
     signal finite.
     """
@@ -116,18 +155,28 @@ def _fit_noise(z, w, F, G, Q_unit, r0, q0, iterations: int = 10):
 def kinematic_smoother(
     nominal: LinearSecondOrder, dt: float, x, xdot, u=None, half_width: int | None = None
 ):
-    """Fuse measured states ``x (N, m)`` with measured rates ``xdot (N, m)`` by RTS smoothing.
+    """Fuse measured states with measured rates by RTS smoothing.
 
-    Each degree of freedom is the chain ``(q, v)`` driven by the measured acceleration; each
-    extra state ``e`` is driven by its measured rate. Within a sample interval the input
-    ``u (N, n)`` is held (piecewise constant), so the acceleration jumps by ``M^-1 B du`` at
-    sample times; the known jump is taken out before the trapezoidal integration. The noise variances of
-    the states and rates are fitted by maximum likelihood of each chain (Newton steps from
-    the first guesses of :func:`noise_std`, whose ``half_width`` defaults to
-    :func:`auto_half_width`): the filter-residual guesses assume a band-limited signal, which a
-    velocity under white-noise force (rough at the sample scale) or an acceleration that jumps
-    (friction) is not; on such data they were 5x too large. Returns the smoothed states
-    ``(N, m)``.
+    Each degree of freedom is the chain `(q, v)` driven by the measured acceleration; each
+    extra state `e` is driven by its measured rate. Within a sample interval the input is
+    held (piecewise constant), so the acceleration jumps by `M^-1 B du` at sample times; the
+    known jump is taken out before the trapezoidal integration. The noise variances of the
+    states and rates are fitted by maximum likelihood of each chain (Newton steps from the
+    first guesses of `noise_std`): the filter-residual guesses assume a band-limited signal,
+    which a velocity under white-noise force (rough at the sample scale) or an acceleration
+    that jumps (friction) is not; on such data they were several times too large.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model (`d` degrees of freedom, extra states, `M`, `B`).
+    - `dt`: sample step, s.
+    - `x`: `(N, m)` measured states.
+    - `xdot`: `(N, m)` measured rates.
+    - `u`: `(N, n)` measured inputs, held over each step, or None (no input jump taken out).
+    - `half_width`: half width, samples, of the noise levels' first guesses, or None (default:
+      `auto_half_width`).
+
+    **Returns:** the smoothed states, `(N, m)`.
     """
     x = jnp.asarray(x)
     xdot = jnp.asarray(xdot)
@@ -144,8 +193,8 @@ def kinematic_smoother(
 
 
 def _smooth_part(nominal: LinearSecondOrder, xdot, u):
-    """The measured rates ``xdot (N, m)`` split into the jump of the held input's force,
-    ``(N, m)`` (zero off the velocity rows), and the smooth rest ``xdot - jump``."""
+    """The measured rates `xdot (N, m)` split into the jump of the held input's force,
+    `(N, m)` (zero off the velocity rows), and the smooth rest `xdot - jump`."""
     d = nominal.d
     jump = jnp.zeros_like(xdot)
     if u is not None:
@@ -156,7 +205,7 @@ def _smooth_part(nominal: LinearSecondOrder, xdot, u):
 
 @eqx.filter_jit  # half_width (a Python int) static
 def _first_guesses(nominal: LinearSecondOrder, x, xdot, u, half_width: int):
-    """Std of the states' and the smooth rates' noise ``((m,), (m,))`` (:func:`noise_std`)."""
+    """Std of the states' and the smooth rates' noise `((m,), (m,))` (`noise_std`)."""
     return noise_std(x, half_width), noise_std(_smooth_part(nominal, xdot, u)[1], half_width)
 
 
@@ -210,12 +259,21 @@ def _kinematic_smoother(nominal: LinearSecondOrder, dt, x, xdot, u, sig_x, sig_r
 
 
 def input_noise_variance(nominal: LinearSecondOrder, xs, u, rates, half_width: int) -> jax.Array:
-    """Variance ``(n,)`` of white noise on the measured inputs, from the measured rates.
+    """Variance of white noise on the measured inputs, from the measured rates.
 
     A white input cannot be told from white noise on its own, but the accelerations see only
-    the true input: the high-frequency parts of ``r = xdot - f(x, 0)`` and ``u`` covary through
-    ``M^-1 B`` times the true input's variance, while ``u`` alone carries true + noise.
-    ``xs``, ``u``, ``rates`` are ``(R, N, .)``; ``half_width`` is static. Jittable.
+    the true input: the high-frequency parts of `r = xdot - f(x, 0)` and `u` covary through
+    `M^-1 B` times the true input's variance, while `u` alone carries true + noise. Jittable.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model.
+    - `xs`: `(R, N, m)` denoised states.
+    - `u`: `(R, N, n)` measured inputs.
+    - `rates`: `(R, N, m)` measured rates.
+    - `half_width`: half width of the high-pass Savitzky-Golay filter, samples (static).
+
+    **Returns:** the noise variance of each input, `(n,)`, in input units squared (at least 0).
     """
     xs, u, rates = (jnp.asarray(a) for a in (xs, u, rates))
     d = nominal.d

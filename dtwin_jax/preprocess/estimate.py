@@ -15,7 +15,7 @@ disturbance intensities are fitted by maximum likelihood; the Rauch-Tung-Striebe
 then gives every state and the disturbance, and the disturbance is the framework-1 target
 `xdot - f(x, u)` of every regressed state.
 
-:func:`identify_linear` fits the nominal linear model itself from input-output data with
+`identify_linear` fits the nominal linear model itself from input-output data with
 the same smoother (starting from pure kinematics), for a structure without a model; known
 parameters (a mass, `K = 0`) can be fixed, and the model it returns is never unstable.
 """
@@ -52,7 +52,17 @@ _SEGMENT = 2000  # samples per piece in the noise fit (pieces run side by side)
 
 
 def measured_index(names, nominal: LinearSecondOrder, what: str = "x_names") -> tuple[int, ...]:
-    """Indices of the measured states named in `names` (`None`: all `m` in order)."""
+    """Indices of the measured states named in `names`.
+
+    **Arguments:**
+
+    - `names`: state names (a string or a sequence of them), or None (all `m` states in order).
+    - `nominal`: the nominal model, whose `state_names` they index.
+    - `what`: the argument's name in the error messages (default `"x_names"`).
+
+    **Returns:** the indices into the `m` states, a tuple of ints in the order of `names`.
+    Raises a one-line `DataError` for an unknown or repeated name.
+    """
     if names is None:
         return tuple(range(nominal.m))
     names = [str(n) for n in np.atleast_1d(np.asarray(names))]
@@ -79,13 +89,26 @@ def _continuous(nominal: LinearSecondOrder):
 
 
 def discretize(nominal: LinearSecondOrder, dt: float, interpolation: str = "held"):
-    """Exact one-step map of the augmented model over `dt` s:
+    """Exact one-step map of the augmented model over one sample step.
+
     `s_{k+1} = F s_k + sum_j W_j [u~_{kL+j}, 1] + noise`, `u~` the input on a grid `L`
-    times finer (`L = 1` unless band-limited, :func:`systems.upsample`), held over the step
-    (`W_1 = 0`) or linear between fine samples. Returns `(F, W (L+1, S, n+1), Q_unit (r, S, S))`,
-    `Q_unit` the one-step covariance per unit intensity of each disturbance (8-point
-    Gauss-Legendre quadrature of `exp(A s) e e^T exp(A^T s)`: Van Loan's block exponential
-    loses the small entries when the states' scales differ by many orders)."""
+    times finer (`L = 1` unless band-limited, `systems.upsample`), held over the step
+    (`W_1 = 0`) or linear between fine samples. `Q_unit` is the one-step covariance per unit
+    intensity of each disturbance (8-point Gauss-Legendre quadrature of
+    `exp(A s) e e^T exp(A^T s)`: Van Loan's block exponential loses the small entries when
+    the states' scales differ by many orders).
+
+    **Arguments:**
+
+    - `nominal`: the nominal model (`m` states, `r` of them regressed, `n` inputs).
+    - `dt`: sample step, s.
+    - `interpolation`: the input between samples, `"held"` (default), `"linear"` or
+      `"bandlimited"`.
+
+    **Returns:** `(F, W, Q_unit)`: the state transition `(S, S)` of the augmented state
+    `S = m + r`, the input gains `(L+1, S, n+1)` (inputs, then the constant force) and the
+    unit disturbance covariances `(r, S, S)`.
+    """
     check_interpolation(interpolation)
     A, Bc = _continuous(nominal)
     S, p = Bc.shape
@@ -175,7 +198,7 @@ def _pieces(a, length: int, fine: int = 1):
 def _fit_noise(model: _Model, z, u, iterations: int = 20):
     """Maximum-likelihood measurement variances `(p,)` and disturbance intensities `(r,)`
     of records `z (R, N, p)` under inputs `u (R, L (N-1) + 1, n+1)` (fine grid): a coarse scan of a common
-    intensity factor, then Newton steps in the logs (:func:`kalman.newton_log_variances`).
+    intensity factor, then Newton steps in the logs (`kalman.newton_log_variances`).
     Pieces of the records are filtered side by side."""
     zp, up = _pieces(z, _SEGMENT), _pieces(u, _SEGMENT, model.W.shape[0] - 1)
     var_z = jnp.var(z.reshape(-1, z.shape[-1]), axis=0)
@@ -226,11 +249,21 @@ def state_smoother(
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Every state and rate from measurements of some of them (see the module docstring).
 
-    `x (R, N, p)` the measured states `x_index` (indices into the `m` states), `u (R, N, n)`
-    the inputs or None (output-only: then no input enters), `xdot (R, N, s)` measured rates
-    of the states `xdot_index`, or None; `dt` s. Returns `(x (R, N, m), xdot (R, N, m),
-    info)`: smoothed states, their rates under the nominal model plus the estimated
-    disturbance, and the fitted noise standard deviations and disturbance intensities.
+    **Arguments:**
+
+    - `nominal`: the nominal model.
+    - `dt`: sample step, s.
+    - `x`: `(R, N, p)` the measured states `x_index`.
+    - `x_index`: indices of the measured states into the `m` states.
+    - `u`: `(R, N, n)` the inputs, or None (output-only: then no input enters).
+    - `xdot`: `(R, N, s)` measured rates of the states `xdot_index`, or None.
+    - `xdot_index`: indices of the states whose rates are measured (ignored without `xdot`).
+    - `interpolation`: the input between samples, `"held"` (default), `"linear"` or
+      `"bandlimited"`.
+
+    **Returns:** `(x, xdot, info)`: the smoothed states `(R, N, m)`, their rates `(R, N, m)`
+    under the nominal model plus the estimated disturbance, and a dict with the method, the
+    fitted noise standard deviations `(p + s,)` and the disturbance intensities `(r,)`.
     """
     x = np.asarray(x, dtype=np.float64)
     R, N, _ = x.shape
@@ -312,8 +345,8 @@ def _psd_part(a: np.ndarray) -> np.ndarray:
 
 
 def _fit_rounds(rec, x_index, xdot_index, d, n, M, fixed, nominal, interpolation, max_iterations, rtol):
-    """The smoother / least-squares rounds of :func:`identify_linear`; returns `C, K, B, F0`
-    in force units (`M` times the acceleration)."""
+    """The smoother / least-squares rounds of `identify_linear`; returns the fitted model,
+    its `C, K, B, F0` in force units (`M` times the acceleration)."""
     free = [k for k in ("K", "C", "B", "F0") if k not in fixed]
     widths = {"K": d, "C": d, "B": n, "F0": 1}
     params = {k: fixed[k] for k in fixed if k != "M"}
@@ -365,14 +398,13 @@ def identify_linear(
     """A linear model `M q'' + C q' + K q = B u + F0` fitted to input-output records.
 
     Starting from pure kinematics (`C = K = B = F0 = 0`, the whole acceleration a
-    disturbance), :func:`state_smoother` estimates every state and acceleration, least
+    disturbance), `state_smoother` estimates every state and acceleration, least
     squares fits the free parameters to them, and the smoother runs again under the fitted
     model, until the fitted acceleration moves by less than `rtol` of its std (at most
     `max_iterations` rounds): the model then interpolates between the samples, which at a
     few samples per period no differentiating filter can. The smoother shrinks the
     disturbance toward the current model, so each round corrects only part of the gap (a
-    lightly damped system at 9 samples per period: C 7.5% and B 3.5% short after 4
-    rounds, exact after 12).
+    lightly damped system at a few samples per period needs many rounds to close it).
 
     The returned model is never unstable (no eigenvalue of `[[0, I], [-M^-1 K, -M^-1 C]]`
     with a real part above `STABLE_RTOL` times the spectral radius): when the free fit is,
@@ -386,15 +418,20 @@ def identify_linear(
     **Arguments:**
 
     - `t`: `(N,)` sample times, s, uniform.
-    - `x`: `(N, p)` or `(R, N, p)` measured states named `x_names` (default all `2d`:
+    - `x`: `(N, p)` or `(R, N, p)` measured states named `x_names`.
+    - `u`: `(N, n)` or `(R, N, n)` inputs (force units when `M` is fixed).
+    - `x_names`: the states of the columns of `x`, or None (default: all `2d`,
       displacements then velocities).
-    - `u`: `(.., N, n)` inputs (force units when `M` is fixed).
     - `d`: degrees of freedom.
-    - `xdot`, `xdot_names`: measured rates, or None.
+    - `xdot`: `(N, s)` or `(R, N, s)` measured rates of the states `xdot_names`, or None.
+    - `xdot_names`: the states whose rates are the columns of `xdot`, or None (default: all
+      `2d` in order).
     - `interpolation`: the input between samples, `"held"`, `"linear"`, `"bandlimited"`, or
       `"auto"`: held or band-limited from the input's spectrum
-      (:func:`dtwin_jax.models.systems.choose_interpolation`).
-    - `max_iterations`, `rtol`: the rounds' limit and stopping tolerance.
+      (`dtwin_jax.models.systems.choose_interpolation`).
+    - `max_iterations`: the most smoother / least-squares rounds.
+    - `rtol`: the rounds stop when the fitted acceleration moves by less than this fraction
+      of its std.
     - `fixed`: known parameters, `{name: value}` with names among `M (d, d)`, `C (d, d)`,
       `K (d, d)`, `B (d, n)`, `F0 (d,)` (a scalar `M`, `C`, `K` is that times the
       identity, a scalar `B`, `F0` fills every entry); only the rest is fitted. A known
@@ -403,11 +440,10 @@ def identify_linear(
       is the identity and `C`, `K`, `B`, `F0` (fixed or fitted) are per unit mass, since
       only `M^-1` times them is identifiable.
 
-    **Returns:**
-
-    The `LinearSecondOrder`, its `M` the fixed one or the identity. Raises a one-line
-    `DataError` for a bad `fixed` (unknown key, wrong shape, non-finite entry, an `M` not
-    symmetric positive definite) or an unstable fit that clipping cannot repair.
+    **Returns:** the fitted `LinearSecondOrder`, its `M` the fixed one or the identity.
+    Raises a one-line `DataError` for a bad `fixed` (unknown key, wrong shape, non-finite
+    entry, an `M` not symmetric positive definite) or an unstable fit that clipping cannot
+    repair.
     """
     from dtwin_jax.data import check_records
 

@@ -7,7 +7,7 @@ is chosen by the operator, independent of the plant's disturbances and of the se
 the part of the states and input that it explains is an instrument. Two-stage least squares:
 the states and inputs are first regressed on the reference's lags (both ways in time: the
 reference is exogenous at every lag), the library at those fitted values gives the
-instruments ``Z``, and the regression uses the columns' projection on ``Z``.
+instruments `Z`, and the regression uses the columns' projection on `Z`.
 """
 
 from __future__ import annotations
@@ -27,14 +27,20 @@ REFERENCE_SPAN = 0.5
 
 
 def reference_fit(signals, reference, dt: float) -> np.ndarray:
-    """The part of ``signals (R, N, c)`` explained by the lags of ``reference (R, N, r)``.
+    """The part of `signals (R, N, c)` explained by the lags of `reference (R, N, r)`.
 
-    **Arguments:** ``signals`` the states and inputs to instrument; ``reference`` the
-    closed loop's set-point, same records and samples; ``dt`` the sample step, s.
+    The lags span `+-REFERENCE_SPAN` s, or an eighth of the record when that is shorter.
 
-    **Returns:** ``(R, N, c)`` least-squares fitted values on a constant and
-    ``2 REFERENCE_TAPS + 1`` lags of every reference channel spread over
-    ``+-REFERENCE_SPAN`` (pooled over records; edges padded with the edge value)."""
+    **Arguments:**
+
+    - `signals`: the states and inputs to instrument, `(R, N, c)` (R records of N samples).
+    - `reference`: the closed loop's set-point, `(R, N, r)`, same records and samples;
+      raises `DataError` otherwise.
+    - `dt`: the sample step, s.
+
+    **Returns:** the fitted values `(R, N, c)`, float64: least squares on a constant and
+    `2 REFERENCE_TAPS + 1` lags of every reference channel spread over `+-REFERENCE_SPAN`
+    (pooled over records; edges padded with the edge value)."""
     signals, reference = np.asarray(signals, np.float64), np.asarray(reference, np.float64)
     R, N, c = signals.shape
     if reference.shape[:2] != (R, N):
@@ -52,13 +58,18 @@ def reference_fit(signals, reference, dt: float) -> np.ndarray:
 def instrumented_stats(Y, L, Z, cov) -> sampler.SuffStats:
     """Two-stage least-squares statistics of every regressed equation, pooled over records.
 
-    **Arguments:** ``Y (R, W, q)`` targets, ``L (R, W, K)`` columns, ``Z (R, W, J)``
-    instruments (``J >= K``), ``cov (q, W, W)`` the rows' noise covariance per equation.
+    **Arguments:**
 
-    **Returns:** ``SuffStats`` of the whitened columns projected on the whitened instruments:
-    ``gram = L' P L``, ``xty = L' P y`` (``P`` the projection); ``yty``, ``n`` as
-    :func:`~dtwin_jax.preprocess.weak_form.weak_stats`. The sampler's residual ``y - P L theta`` then
-    holds what the instruments do not explain: wider intervals, not narrower."""
+    - `Y`: targets, `(R, W, q)` (R records, W rows, q regressed equations).
+    - `L`: library columns, `(R, W, K)`.
+    - `Z`: instruments, `(R, W, J)`, `J >= K`.
+    - `cov`: the rows' noise covariance per equation, `(q, W, W)` (the same in every record).
+
+    **Returns:** `SuffStats` batched over the `q` equations, of the whitened columns projected
+    on the whitened instruments: `gram = L' P L`, `xty = L' P y` (`P` the projection); `yty`,
+    `n` as `weak_form.weak_stats`. The sampler's residual `y - P L theta` then holds what the
+    instruments do not explain: wider intervals, not narrower."""
+
 
     from scipy.linalg import solve_triangular
 

@@ -7,8 +7,8 @@ states `s (S,)`, measurements `z (p,)`. `F`, `c`, `Q` may be one array for every
 one per step (a leading axis `N-1`); `e` one per sample. The measurement noise is
 independent across channels (`r` diagonal), so the update takes one channel at a time:
 scalar innovations, no matrix factorisation, several times faster batched on a CPU.
-Users: the partial-state smoother (:mod:`dtwin_jax.preprocess.estimate`), the kinematic smoother
-(:mod:`dtwin_jax.preprocess.denoise`) and the diffusion likelihood (:mod:`dtwin_jax.output_only.statespace`).
+Users: the partial-state smoother (`dtwin_jax.preprocess.estimate`), the kinematic smoother
+(`dtwin_jax.preprocess.denoise`) and the diffusion likelihood (`dtwin_jax.output_only.statespace`).
 """
 
 from __future__ import annotations
@@ -52,13 +52,30 @@ def _update(m, P, z, H, r):
 
 
 def kalman_filter(F, c, Q, H, e, r, z, m0, P0, *, update_first: bool = True) -> Filtered:
-    """Filter `z (N, p)`: `F (S, S)` or `(N-1, S, S)`, `c (S,)` or `(N-1, S)`, `Q` like `F`
-    or a pair `(w (d,), Q_unit (d, S, S) or (N-1, d, S, S))` for `Q_k = sum_v w_v Q_unit[k, v]`,
-    `H (p, S)` or `(N, p, S)` per sample (None: `p = S` states measured directly), `e (N, p)` known measurement
-    offsets (None: zero), `r (p,)` noise variances, prior `m0 (S,)`, `P0 (S, S)` of `s_0`.
-    `update_first=False`: `m0, P0` already condition on `z_0` (a filter started at the
-    first measurement), which then enters neither the update nor the likelihood.
-    Pure; jit, vmap and differentiate freely."""
+    """Kalman-filter the measurements `z` of the model in the module docstring.
+
+    Pure; jit, vmap and differentiate freely.
+
+    **Arguments:**
+
+    - `F`: the transition, `(S, S)` for every step or `(N-1, S, S)` one per step.
+    - `c`: the transition's offset, `(S,)` or `(N-1, S)`.
+    - `Q`: the process-noise covariance, like `F`; or a pair `(w (d,), Q_unit)` with `Q_unit`
+      `(d, S, S)` or `(N-1, d, S, S)`, for `Q_k = sum_v w_v Q_unit[k, v]` (summed inside the
+      loop, so differentiating in `w` does not materialize a per-step `Q`).
+    - `H`: the measurement matrix, `(p, S)`, or `(N, p, S)` one per sample; None: `p = S`,
+      the states measured directly.
+    - `e`: known measurement offsets, `(N, p)`, or None for zero.
+    - `r`: the measurement noise variances, `(p,)` (independent channels).
+    - `z`: the measurements, `(N, p)`.
+    - `m0`: the prior mean of `s_0`, `(S,)`.
+    - `P0`: the prior covariance of `s_0`, `(S, S)`.
+    - `update_first`: True (default): `z_0` updates the prior. False: `m0`, `P0` already
+      condition on `z_0` (a filter started at the first measurement), which then enters
+      neither the update nor the likelihood.
+
+    **Returns:** `Filtered`: filtered means `(N, S)` and covariances `(N, S, S)`, one-step
+    predictions `(N-1, S)`, `(N-1, S, S)` of samples 1..N-1, and the log-likelihood `()`."""
     z = jnp.asarray(z)
     N = z.shape[0]
     r = jnp.asarray(r)
@@ -90,8 +107,15 @@ def kalman_filter(F, c, Q, H, e, r, z, m0, P0, *, update_first: bool = True) -> 
 
 
 def rts_smoother(filtered: Filtered, F) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Smoothed means `(N, S)`, covariances `(N, S, S)` and lag-one cross covariances
-    `cov(s_{k+1}, s_k | all) (N-1, S, S)` from :func:`kalman_filter`'s output and its `F`."""
+    """Rauch-Tung-Striebel smoothing of a `kalman_filter` run.
+
+    **Arguments:**
+
+    - `filtered`: `kalman_filter`'s output for `N` samples of `S` states.
+    - `F`: the transition that filter used, `(S, S)` or `(N-1, S, S)`.
+
+    **Returns:** `(means, covs, cross)`: smoothed means `(N, S)`, covariances `(N, S, S)` and
+    lag-one cross covariances `cov(s_{k+1}, s_k | all)`, `(N-1, S, S)`."""
     mf, Pf, mp, Pp, _ = filtered
     N = mf.shape[0]
 
@@ -109,10 +133,22 @@ def rts_smoother(filtered: Filtered, F) -> tuple[jax.Array, jax.Array, jax.Array
 
 
 def newton_log_variances(loglik: Callable, params, floor, iterations: int):
-    """Maximize `loglik(params) -> ()` over log-variances `params (P,)` by `iterations`
-    Newton steps, each clipped to a factor e per variance, the best of four step lengths
-    (1, 1/2, 1/4, 0) kept and every trial floored at `floor (P,)`; a scaled ascent step
-    where the Hessian is not negative definite. Fixed iterations, so it jits and vmaps."""
+    """Maximize a log-likelihood over log-variances by a fixed number of Newton steps.
+
+    Each step is clipped to a factor e per variance, the best of four step lengths
+    (1, 1/2, 1/4, 0) kept (a trial whose likelihood is not finite never wins) and every
+    trial floored at `floor`; a scaled ascent step where the Hessian is not negative
+    definite. Fixed iterations, so it jits and vmaps.
+
+    **Arguments:**
+
+    - `loglik`: `loglik(params) -> ()`, the log-likelihood of the log-variances.
+    - `params`: the starting log-variances, `(P,)`.
+    - `floor`: the lowest log-variances allowed, `(P,)`.
+    - `iterations`: the number of Newton steps.
+
+    **Returns:** the log-variances `(P,)` after the last step."""
+
 
     def newton(_, params):
         # One copy of the gradient: the Hessian's jacfwd returns it as aux (XLA does not

@@ -39,9 +39,18 @@ def add_noise(key: Array, signal: Float[Array, "... N c"], level, *, per_record:
     """Add Gaussian noise of std `level * std(signal)`.
 
     The std is taken over time, per column and per record, so `level` is a
-    noise-to-signal ratio in `[0, 1]`. `signal` is `(N,)`, `(N, c)` or `(R, N, c)`.
-    With `per_record=False` an ensemble's std is taken over all records: one sensor per
-    column, whose noise does not grow with a record's amplitude.
+    noise-to-signal ratio in `[0, 1]`.
+
+    **Arguments:**
+
+    - `key`: a JAX random key.
+    - `signal`: the clean signal, `(N,)`, `(N, c)` or `(R, N, c)` (time along axis `-2`).
+    - `level`: the noise-to-signal ratio in `[0, 1]` (checked unless traced); 0 returns
+      `signal` unchanged.
+    - `per_record`: True (default): the std per record. False: an ensemble's std is taken over
+      all records: one sensor per column, whose noise does not grow with a record's amplitude.
+
+    **Returns:** the noisy signal, the shape and dtype of `signal`.
     """
     signal = jnp.asarray(signal)
     if signal.ndim not in (1, 2, 3):
@@ -72,7 +81,19 @@ class Measurements(NamedTuple):
 
 
 def measure(key: Array, t, x, xdot=None, u=None, *, level) -> Measurements:
-    """Corrupt each given signal with independent noise at `level` (see `add_noise`)."""
+    """Corrupt each given signal with independent noise at `level` (see `add_noise`).
+
+    **Arguments:**
+
+    - `key`: a JAX random key (split into one per signal).
+    - `t`: the sample times `(N,)`, s; kept noise-free.
+    - `x`: states, `(N, m)` or `(R, N, m)`.
+    - `xdot`: state rates, the shape of `x`, or None.
+    - `u`: inputs, `(N, n)` or `(R, N, n)`, or None.
+    - `level`: the noise-to-signal ratio in `[0, 1]`, per column and record.
+
+    **Returns:** `Measurements` of `t` and the noisy `x`, `xdot`, `u` (None where not given).
+    """
     kx, kxdot, ku = jax.random.split(key, 3)
     return Measurements(
         t=jnp.asarray(t),
@@ -120,7 +141,16 @@ def savgol_coefficients(
 
     Same convention as `scipy.signal.savgol_coeffs(..., use="conv")`: convolving a
     signal sampled every `dt` with them gives the `deriv`-th derivative of the local
-    order-`order` least-squares polynomial, in units of signal / time^deriv.
+    order-`order` least-squares polynomial, in units of signal / `time^deriv`.
+
+    **Arguments:**
+
+    - `half_width`: the window's half width `M` in samples (the window is `2 M + 1`).
+    - `order`: the polynomial's order, less than `2 M + 1`.
+    - `deriv`: the derivative to estimate (default 0: smoothing).
+    - `dt`: the sample step (default 1), s.
+
+    **Returns:** the taps `(2*half_width + 1,)`, float64; raises `DataError` for a bad window.
     """
     _check_window(half_width, order, deriv)
     correlation = _fit_evaluate_matrix(half_width, order, deriv, np.zeros(1))[0]
@@ -145,11 +175,19 @@ def smooth(
 ) -> Float[Array, "... N c"]:
     """Savitzky-Golay filter along time; matches `scipy.signal.savgol_filter(mode="interp")`.
 
-    `x` is `(N,)`, `(N, c)` or `(R, N, c)`, sampled every `dt` (only used when
-    `deriv > 0`); the output has the same shape. The interior is a convolution;
-    the first and last `half_width` samples come from the polynomial fitted to the
-    first and last `2*half_width + 1` samples. `half_width`, `order`, `deriv` are
-    static Python ints.
+    The interior is a convolution; the first and last `half_width` samples come from the
+    polynomial fitted to the first and last `2*half_width + 1` samples.
+
+    **Arguments:**
+
+    - `x`: the signal, `(N,)`, `(N, c)` or `(R, N, c)`, with `N >= 2*half_width + 1`.
+    - `half_width`: the window's half width in samples, a static Python int.
+    - `order`: the polynomial's order (default 4), a static Python int.
+    - `deriv`: the derivative to estimate (default 0: smoothing), a static Python int.
+    - `dt`: the sample step, s (default 1; only used when `deriv > 0`).
+
+    **Returns:** the filtered signal (its `deriv`-th derivative, in signal units / `s^deriv`),
+    the shape of `x`.
     """
     _check_window(half_width, order, deriv)
     x = jnp.asarray(x)
@@ -183,9 +221,18 @@ def smoothing_half_width(
 
     Matches the filter to both the sampling rate `1/dt` and the signal band, via
     Schafer's approximation `f_c / (f_s / 2) ~ (order + 1) / (3.2 M - 4.6)`.
-    `f_signal_hz` is usually the highest nominal natural frequency (see
-    `highest_natural_frequency_hz`); `factor` leaves room for harmonics created by
-    the nonlinearity. The result is clamped to `[order // 2 + 1, max_half_width]`.
+
+    **Arguments:**
+
+    - `dt`: the sample step, s (positive).
+    - `f_signal_hz`: the signal's band, Hz (positive); usually the highest nominal natural
+      frequency (see `highest_natural_frequency_hz`).
+    - `order`: the filter's polynomial order (default 4).
+    - `factor`: the cutoff over `f_signal_hz` (default 8): room for harmonics created by the
+      nonlinearity.
+    - `max_half_width`: the largest half width returned (default 500).
+
+    **Returns:** the half width `M` in samples, clamped to `[order // 2 + 1, max_half_width]`.
     """
     if not (np.isfinite(dt) and dt > 0):
         raise DataError(f"sampling interval dt must be positive, got {dt}")
@@ -197,7 +244,14 @@ def smoothing_half_width(
 
 
 def highest_natural_frequency_hz(nominal: LinearSecondOrder) -> float:
-    """Largest undamped natural frequency of the nominal model, `max sqrt(eig(M^-1 K)) / 2 pi`, Hz."""
+    """Largest undamped natural frequency of the nominal model, `max sqrt(eig(M^-1 K)) / 2 pi`, Hz.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model, with mass `M` and stiffness `K`.
+
+    **Returns:** the frequency in Hz, a float (0 without stiffness).
+    """
     M = np.asarray(nominal.M, dtype=np.float64)
     K = np.asarray(nominal.K, dtype=np.float64)
     omega2 = np.real(np.linalg.eigvals(np.linalg.solve(M, K)))
@@ -211,8 +265,18 @@ def estimate_rates(
 
     For when rates are not measured. The filter differentiates exactly any
     polynomial of degree <= `order` over the window, so for a smooth signal the
-    bias in the interior is O((half_width * dt)^order), while the least-squares fit
+    bias in the interior is `O((half_width * dt)^order)`, while the least-squares fit
     suppresses noise above the cutoff (see `smoothing_half_width`). The first and
     last `half_width` samples use one-sided fits and are less accurate.
+
+    **Arguments:**
+
+    - `x`: the states, `(N, m)` or `(R, N, m)` (also `(N,)`).
+    - `dt`: the sample step, s.
+    - `half_width`: the window's half width in samples.
+    - `order`: the polynomial's order (default 4).
+
+    **Returns:** the rates, the shape of `x`, in the states' units per second.
     """
+
     return smooth(x, half_width, order, deriv=1, dt=dt)

@@ -1,20 +1,20 @@
 """The weak (integral) form of framework 1: states without rates, nothing differentiated.
 
-Each regressed equation ``x_i' = f_i(x, u) + Theta(x, u) theta`` is multiplied by test
-functions ``phi_k(t) = (s (1 - s))^p`` on windows of the record (``s`` runs 0..1 over the
-window) and integrated; ``phi_k`` and its derivatives vanish at the window's ends, so by
-parts ``y_k = -int phi_k' x_i dt - int phi_k f_i(x, u) dt = int phi_k Theta(x, u) dt theta``:
+Each regressed equation `x_i' = f_i(x, u) + Theta(x, u) theta` is multiplied by test
+functions `phi_k(t) = (s (1 - s))^p` on windows of the record (`s` runs 0..1 over the
+window) and integrated; `phi_k` and its derivatives vanish at the window's ends, so by
+parts `y_k = -int phi_k' x_i dt - int phi_k f_i(x, u) dt = int phi_k Theta(x, u) dt theta`:
 the rate never appears. A velocity that is not measured (displacement sensors alone) is
-integrated by parts once more, ``int phi v = -int phi' q`` and ``int phi' v = -int phi'' q``,
-so the nominal model's part stays exact; so is a library term ``g(q_j) v_j``, the time
-derivative of ``G(q_j)``: ``int phi g v = -int phi' G``. Only the terms nonlinear in an
+integrated by parts once more, `int phi v = -int phi' q` and `int phi' v = -int phi'' q`,
+so the nominal model's part stays exact; so is a library term `g(q_j) v_j`, the time
+derivative of `G(q_j)`: `int phi g v = -int phi' G`. Only the terms nonlinear in an
 unmeasured velocity see an estimate of it (a Savitzky-Golay derivative).
 
 Windows overlap, so the rows' noise is correlated. Each equation's rows are whitened by their
-covariance: white measurement noise on the sensors (``sum_j s_j^2 A_j A_j^T``, ``A_j = d y /
-d x_j`` through the test functions and the nominal model) plus a white equation error of
-unknown size (input noise, process noise, what the library misses: ``lambda Phi Phi^T``),
-``lambda`` chosen by restricted maximum likelihood on the whole library's residual. Without
+covariance: white measurement noise on the sensors (`sum_j s_j^2 A_j A_j^T`, `A_j = d y /
+d x_j` through the test functions and the nominal model) plus a white equation error of
+unknown size (input noise, process noise, what the library misses: `lambda Phi Phi^T`),
+`lambda` chosen by restricted maximum likelihood on the whole library's residual. Without
 that second part, input noise and model error would pass for information and the intervals
 would be too narrow.
 """
@@ -69,10 +69,17 @@ def _period_samples(nominal: LinearSecondOrder, dt: float, num_samples: int) -> 
 
 
 def weak_windows(nominal: LinearSecondOrder, dt: float, num_samples: int) -> tuple[int, int]:
-    """Default window ``(width, stride)`` in samples: one period of the nominal's fastest
+    """Default window `(width, stride)` in samples: one period of the nominal's fastest
     mode (a 1 % of the record without stiffness), moved by an eighth of it.
 
-    ``dt`` s; ``num_samples`` per record. The width is clipped to the record.
+    **Arguments:**
+
+    - `nominal`: the nominal model, whose fastest undamped mode sets the width.
+    - `dt`: the sample step, s.
+    - `num_samples`: the samples per record.
+
+    **Returns:** `(width, stride)` in samples: the width at least `2 TEST_POWER + 3` and
+    clipped to the record, the stride `width // 8` (at least 1).
     """
     width = int(round(_period_samples(nominal, dt, num_samples)))
     width = int(min(max(width, 2 * TEST_POWER + 3), num_samples))
@@ -80,15 +87,23 @@ def weak_windows(nominal: LinearSecondOrder, dt: float, num_samples: int) -> tup
 
 
 def weak_window_fits(nominal: LinearSecondOrder, dt: float, num_samples: int) -> bool:
-    """Whether a record of ``num_samples`` holds at least two of the default windows
-    (:func:`weak_windows`: one period of the fastest mode, at least ``2 p + 3`` samples)."""
+    """Whether a record of `num_samples` holds at least two of the default windows
+    (`weak_windows`: one period of the fastest mode, at least `2 p + 3` samples).
+
+    **Arguments:**
+
+    - `nominal`: the nominal model.
+    - `dt`: the sample step, s.
+    - `num_samples`: the samples per record.
+
+    **Returns:** True when `width + stride <= num_samples`."""
     width, stride = weak_windows(nominal, dt, num_samples)
     return width + stride <= num_samples
 
 
 def _segment_length(num_samples: int, width: int, stride: int) -> int:
-    """The longest record length (at most ``num_samples``, at least 4 windows) whose
-    quadrature (4 W N) and covariance (9 W^2) matrices fit ``_SEGMENT_BYTES``."""
+    """The longest record length (at most `num_samples`, at least 4 windows) whose
+    quadrature (4 W N) and covariance (9 W^2) matrices fit `_SEGMENT_BYTES`."""
     n = num_samples
     while n > 4 * width:
         w = (n - width) // stride + 1
@@ -99,22 +114,47 @@ def _segment_length(num_samples: int, width: int, stride: int) -> int:
 
 
 def cut_segments(a: np.ndarray, length: int) -> np.ndarray:
-    """``(R, N, c)`` -> ``(R * (N // length), length, c)``; the remainder is dropped."""
+    """`(R, N, c)` -> `(R * (N // length), length, c)`; the remainder is dropped.
+
+    **Arguments:**
+
+    - `a`: records `(R, N, c)`.
+    - `length`: the segment length in samples.
+
+    **Returns:** the segments `(R * (N // length), length, c)`, each a record of its own
+    (record by record, in time order)."""
     R, N, c = a.shape
     k = N // length
     return a[:, : k * length].reshape(R * k, length, c)
 
 
 def weak_layout_supported(nominal: LinearSecondOrder, x_index) -> bool:
-    """Whether the measured states ``x_index`` suit the weak form: every displacement and
-    extra state measured (a velocity may be missing: it is integrated by parts)."""
+    """Whether the measured states `x_index` suit the weak form: every displacement and
+    extra state measured (a velocity may be missing: it is integrated by parts).
+
+    **Arguments:**
+
+    - `nominal`: the nominal model.
+    - `x_index`: the indices of the measured states (0-based, among the `m`).
+
+    **Returns:** True when every state but the velocities is in `x_index`."""
     need = [i for i in range(nominal.m) if i not in nominal.velocity_index]
     return all(i in tuple(x_index) for i in need)
 
 
 def bump_functions(width: int, dt: float, power: int):
-    """``phi``, ``phi'``, ``phi''`` on one window's samples, scaled to unit integral, each
-    times ``dt`` (quadrature weights); and the held input's exact weights."""
+    """`phi`, `phi'`, `phi''` on one window's samples, scaled to unit integral, each
+    times `dt` (quadrature weights); and the held input's exact weights.
+
+    **Arguments:**
+
+    - `width`: the window in samples.
+    - `dt`: the sample step, s.
+    - `power`: p of `phi = (s (1 - s))^p`, `s` running 0..1 over the window.
+
+    **Returns:** `(phi, dphi, ddphi, held)`, each `(width,)`: the weights of `phi`, `phi'`
+    (1/s) and `phi''` (1/s^2), and `held`, the exact integral of `phi` over each step
+    `[s_j, s_j+1]` (zero at the last sample)."""
     s = np.arange(width) / (width - 1)
     span = (width - 1) * dt
     b = s * (1 - s)
@@ -136,10 +176,14 @@ def bump_functions(width: int, dt: float, power: int):
 def check_window(num_samples: int, width: int, stride: int, power: int) -> np.ndarray:
     """The windows' first samples on a record, after checking the window fits.
 
-    **Arguments:** ``num_samples`` N, the window ``width`` and ``stride`` in samples, the test
-    functions' ``power`` p (a window needs at least ``2 p + 3`` samples).
+    **Arguments:**
 
-    **Returns:** ``(W,)`` sample indices; raises ``DataError`` when the window does not fit."""
+    - `num_samples`: N, the samples per record.
+    - `width`: the window in samples.
+    - `stride`: the step between windows' starts, samples (at least 1).
+    - `power`: the test functions' p (a window needs at least `2 p + 3` samples).
+
+    **Returns:** the sample indices `(W,)`; raises `DataError` when the window does not fit."""
     if width < 2 * power + 3 or width > num_samples:
         raise DataError(f"weak-form window of {width} samples must lie in [{2 * power + 3}, {num_samples}]")
     if stride < 1:
@@ -158,15 +202,20 @@ def window_quadrature(num_samples: int, dt: float, width: int, stride: int, powe
                       held: bool = True, second: bool = False) -> tuple[np.ndarray, ...]:
     """Quadrature matrices of the test functions over one record.
 
-    **Arguments:** ``num_samples`` N, ``dt`` s, window ``width`` and ``stride`` (samples),
-    ``power`` p of ``phi = (s (1 - s))^p`` (scaled to unit integral), ``held``: the input's
-    weights integrate ``phi`` exactly over each held step rather than by the trapezoid rule;
-    ``second``: also return the second derivative's.
+    **Arguments:**
 
-    **Returns:** ``(Phi, dPhi, Phi_u)`` (and ``ddPhi`` with ``second``), each
-    ``(num_windows, N)`` (s and 1/s units folded in): ``Phi @ g`` ~ ``int phi_k g dt``,
-    ``dPhi @ g`` ~ ``int phi_k' g dt``, ``ddPhi @ g`` ~ ``int phi_k'' g dt``, ``Phi_u`` the
-    input's weights.
+    - `num_samples`: N, the samples per record.
+    - `dt`: the sample step, s.
+    - `width`: the window in samples.
+    - `stride`: the step between windows' starts, samples.
+    - `power`: p of `phi = (s (1 - s))^p` (scaled to unit integral); default `TEST_POWER`.
+    - `held`: True (default): the input's weights integrate `phi` exactly over each held step;
+      False: by the trapezoid rule.
+    - `second`: also return the second derivative's (default False).
+
+    **Returns:** `(Phi, dPhi, Phi_u)` (and `ddPhi` with `second`), each `(num_windows, N)`
+    (s and 1/s units folded in): `Phi @ g` ~ `int phi_k g dt`, `dPhi @ g` ~ `int phi_k' g dt`,
+    `ddPhi @ g` ~ `int phi_k'' g dt`, `Phi_u` the input's weights.
     """
     starts = check_window(num_samples, width, stride, power)
     phi, dphi, ddphi, held_w = bump_functions(width, dt, power)
@@ -176,19 +225,22 @@ def window_quadrature(num_samples: int, dt: float, width: int, stride: int, powe
 
 
 def window_grams(kernels, num_windows: int, stride: int) -> np.ndarray:
-    """Every ``A @ B.T`` of quadrature matrices that place one kernel per window (those of
-    :func:`window_quadrature`: row ``k`` is the kernel on samples ``[k stride, k stride +
-    width)``), from the kernels alone.
+    """Every `A @ B.T` of quadrature matrices that place one kernel per window (those of
+    `window_quadrature`: row `k` is the kernel on samples `[k stride, k stride + width)`),
+    from the kernels alone.
 
-    Two windows overlap when their starts are less than ``width`` apart, so each product is a
-    band of ``2 (width - 1) // stride + 1`` diagonals, constant along each: ``O(width^2 /
-    stride)`` work instead of the dense product's ``O(W^2 N)``, which took most of a long
-    accelerometer record's update (the three smooth filters of a 20 s record at 1 kHz: 45 s).
+    Two windows overlap when their starts are less than `width` apart, so each product is a
+    band of `2 (width - 1) // stride + 1` diagonals, constant along each: `O(width^2 / stride)`
+    work instead of the dense product's `O(W^2 N)`, which took most of a long accelerometer
+    record's update.
 
-    **Arguments:** ``kernels``: ``c`` arrays ``(width,)`` (quadrature weights); the number of
-    windows ``W`` and their ``stride`` in samples.
+    **Arguments:**
 
-    **Returns:** ``(c, c, W, W)``."""
+    - `kernels`: `c` arrays `(width,)` of quadrature weights.
+    - `num_windows`: the number of windows `W`.
+    - `stride`: the step between windows' starts, samples.
+
+    **Returns:** the products `(c, c, W, W)`: `[i, j]` is `A_i @ A_j.T`."""
     width = len(kernels[0])
     k = np.arange(num_windows)
     out = np.zeros((len(kernels), len(kernels), num_windows, num_windows))
@@ -204,25 +256,39 @@ def window_grams(kernels, num_windows: int, stride: int) -> np.ndarray:
 
 
 def window_filter(kernel: np.ndarray, stride: int, x: np.ndarray) -> np.ndarray:
-    """``int chi_k g dt`` on every window: ``x (R, N, c)`` through one kernel ``(width,)`` of
-    quadrature weights placed every ``stride`` samples (what a matrix of
-    :func:`window_quadrature` does, without the ``(W, N)`` matrix).
+    """`int chi_k g dt` on every window: `x (R, N, c)` through one kernel `(width,)` of
+    quadrature weights placed every `stride` samples (what a matrix of
+    `window_quadrature` does, without the `(W, N)` matrix).
 
-    **Returns:** ``(R, W, c)``, ``W = (N - width) // stride + 1``."""
+    **Arguments:**
+
+    - `kernel`: the quadrature weights on one window, `(width,)`.
+    - `stride`: the step between windows' starts, samples.
+    - `x`: the signals `(R, N, c)`.
+
+    **Returns:** the integrals `(R, W, c)`, `W = (N - width) // stride + 1`."""
     view = np.lib.stride_tricks.sliding_window_view(x, len(kernel), axis=1)[:, ::stride]  # (R, W, c, width)
     return view @ kernel
 
 
 def derivative_terms(lib: Library, x, u, pairs, *, grid: int = 8193) -> dict[int, np.ndarray]:
-    """The library terms that are a time derivative ``g(q_j) v_j = d G(q_j) / dt``, and ``G``.
+    """The library terms that are a time derivative `g(q_j) v_j = d G(q_j) / dt`, and `G`.
 
-    **Arguments:** ``x (R, N, m)`` states (estimates where not measured), ``u (R, N, n)``,
-    ``pairs``: ``(position index, velocity index)`` of the states whose velocity is not
-    measured; ``grid`` points for the antiderivative over the measured displacement range.
+    A term qualifies when, on 64 sampled points, it scales with `v_j` (by 2 and by -1/2) and
+    does not change when every other state and input is redrawn; `G` is its cumulative
+    trapezoid integral in `q_j` on the grid.
 
-    **Returns:** ``{column: G(q_j(t)) (R, N)}``. A term qualifies when, on 64 sampled points,
-    it scales with ``v_j`` (by 2 and by -1/2) and does not change when every other state and
-    input is redrawn; ``G`` is its cumulative trapezoid integral in ``q_j`` on the grid.
+    **Arguments:**
+
+    - `lib`: the library of `K` candidate terms.
+    - `x`: states `(R, N, m)` (estimates where not measured).
+    - `u`: inputs `(R, N, n)`.
+    - `pairs`: `(position index, velocity index)` of the states whose velocity is not
+      measured.
+    - `grid`: the points of the antiderivative's grid over the measured displacement range
+      (default 8193).
+
+    **Returns:** `{column: G(q_j(t))}`, each `(R, N)`, for the qualifying columns.
     """
     x, u = np.asarray(x, dtype=np.float64), np.asarray(u, dtype=np.float64)
     m = x.shape[-1]
@@ -263,30 +329,30 @@ def derivative_terms(lib: Library, x, u, pairs, *, grid: int = 8193) -> dict[int
 # lowers and loads every program it meets, ~10 ms each).
 @eqx.filter_jit
 def _input_rates(nominal: LinearSecondOrder, u):
-    """The nominal rates at the zero state under ``u (R, N, n)`` less those without input,
-    ``(R, N, m)``, and the rate at the zero state and input ``(m,)``."""
+    """The nominal rates at the zero state under `u (R, N, n)` less those without input,
+    `(R, N, m)`, and the rate at the zero state and input `(m,)`."""
     f_0 = nominal.rate(jnp.zeros(nominal.m), jnp.zeros(nominal.n))
     return jax.vmap(nominal.rate_batch)(jnp.zeros(u.shape[:-1] + (nominal.m,)), u) - f_0, f_0
 
 
 @eqx.filter_jit
 def _windowed_library(lib, Phi, full, u, spread):
-    """The library's columns integrated against the test functions ``Phi (W, N)``, per record
-    of the states ``full (R, N, m)`` and inputs ``u (R, N, n)``: ``(R, W, K)``."""
+    """The library's columns integrated against the test functions `Phi (W, N)`, per record
+    of the states `full (R, N, m)` and inputs `u (R, N, n)`: `(R, W, K)`."""
     return jax.vmap(lambda a, b: Phi @ lib(a, b, smoothing=spread))(full, u)
 
 
 @eqx.filter_jit
 def _rate_jacobian(nominal: LinearSecondOrder) -> jax.Array:
-    """The nominal rate's Jacobian in the states ``(m, m)``."""
+    """The nominal rate's Jacobian in the states `(m, m)`."""
     return jax.jacfwd(nominal.rate)(jnp.zeros(nominal.m), jnp.zeros(nominal.n))
 
 
 def _operators(nominal: LinearSecondOrder, x_index):
-    """Per regressed equation and measured column, the weights ``(alpha, beta, gamma)`` of
-    ``Phi``, ``dPhi``, ``ddPhi`` in ``y_i = -sum_r (alpha Phi + beta dPhi + gamma ddPhi) x_r + ...``.
+    """Per regressed equation and measured column, the weights `(alpha, beta, gamma)` of
+    `Phi`, `dPhi`, `ddPhi` in `y_i = -sum_r (alpha Phi + beta dPhi + gamma ddPhi) x_r + ...`.
 
-    Returns ``(q, p, 3)``, from ``int phi x_s`` and ``int phi' x_s`` written on measured
+    Returns `(q, p, 3)`, from `int phi x_s` and `int phi' x_s` written on measured
     columns, and the nominal Jacobian."""
     x_index = tuple(x_index)
     d, m = nominal.d, nominal.m
@@ -305,14 +371,14 @@ def _operators(nominal: LinearSecondOrder, x_index):
 
 
 def _bandwidth(cov: np.ndarray) -> int:
-    """The largest ``|i - j|`` of a nonzero ``cov[i, j]``."""
+    """The largest `|i - j|` of a nonzero `cov[i, j]`."""
     i, j = np.nonzero(cov)
     return int(np.max(np.abs(i - j))) if i.size else 0
 
 
 def _as_band(cov: np.ndarray, band: int) -> np.ndarray:
-    """``cov (W, W)`` in LAPACK's lower band storage when only ``band`` diagonals either side
-    are nonzero and that saves work (``band < W / 8``), else ``cov`` itself."""
+    """`cov (W, W)` in LAPACK's lower band storage when only `band` diagonals either side
+    are nonzero and that saves work (`band < W / 8`), else `cov` itself."""
     W = cov.shape[0]
     if band >= W // 8:
         return cov
@@ -320,11 +386,11 @@ def _as_band(cov: np.ndarray, band: int) -> np.ndarray:
 
 
 def _whitener(cov: np.ndarray):
-    """``b -> chol(cov)^-1 b`` and ``log det cov``, a relative jitter of 1e-10 on the diagonal.
+    """`b -> chol(cov)^-1 b` and `log det cov`, a relative jitter of 1e-10 on the diagonal.
     Without the states' error the rows' covariance is a band (only overlapping windows
-    correlate): its Cholesky factor then costs ``O(W band^2)`` instead of ``O(W^3)``.
+    correlate): its Cholesky factor then costs `O(W band^2)` instead of `O(W^3)`.
 
-    ``cov``: ``(W, W)``, or ``(band + 1, W)`` in lower band storage (:func:`_as_band`)."""
+    `cov`: `(W, W)`, or `(band + 1, W)` in lower band storage (`_as_band`)."""
     from scipy.linalg import cholesky_banded, lapack, solve_triangular
 
     W = cov.shape[1]
@@ -348,13 +414,19 @@ def _whitener(cov: np.ndarray):
 
 
 def reml_weight(L, Y, S_x, S_w) -> float:
-    """The equation error's weight ``lambda`` in ``S_x + lambda S_w``: its posterior mean under
+    """The equation error's weight `lambda` in `S_x + lambda S_w`: its posterior mean under
     the restricted likelihood of the whole library's least-squares residual and a log-uniform
-    prior over ``_ERROR_GRID`` (relative to the traces). The mode would often sit at the
-    boundary, no error at all, where the likelihood is flat: a 2-DOF chain's equation then
-    took 0 and selected six spurious terms at PIP 0.6-1 (zoo-0039, displacement alone).
+    prior over `_ERROR_GRID` (relative to the traces). The mode would often sit at the
+    boundary, no error at all, where the likelihood is flat, and then let spurious terms in.
 
-    ``L (R, W, K)`` columns, ``Y (R, W)`` targets, ``S_x``, ``S_w (W, W)``."""
+    **Arguments:**
+
+    - `L`: the library columns `(R, W, K)`.
+    - `Y`: one equation's targets `(R, W)`.
+    - `S_x`: the rows' covariance from the sensor noise, `(W, W)`.
+    - `S_w`: the rows' covariance of a unit white equation error, `(W, W)`.
+
+    **Returns:** `lambda`, a float (0 when the columns leave no residual degrees of freedom)."""
     R = L.shape[0]
     unit = np.trace(S_x) / np.trace(S_w)
     lams, lls = _ERROR_GRID * unit, []
@@ -376,14 +448,21 @@ def reml_weight(L, Y, S_x, S_w) -> float:
 
 
 def effective_share(L, Y, cov) -> float:
-    """``n_eff / n`` of the whitened rows: arviz's ESS of the whole library's least-squares
-    residual, summed over records, at most 1. ``L (R, W, K)``, ``Y (R, W)``, ``cov (W, W)``.
+    """`n_eff / n` of the whitened rows: arviz's ESS of the whole library's least-squares
+    residual, summed over records, at most 1.
 
     Where the fit absorbs more than half the rows' dimensions (a short record's few windows
-    and a large library: 34 windows, 46 terms), the residual is mostly the fit's projection,
-    or rounding when nothing is left: its ESS says nothing about the errors (one record gave
-    0.24 or 1.0 by the BLAS's thread count), so the share is 1, the covariance's whitening
-    trusted."""
+    and a large library), the residual is mostly the fit's projection, or rounding when
+    nothing is left: its ESS says nothing about the errors (it changed with the BLAS's thread
+    count), so the share is 1, the covariance's whitening trusted.
+
+    **Arguments:**
+
+    - `L`: the library columns `(R, W, K)`.
+    - `Y`: one equation's targets `(R, W)`.
+    - `cov`: the rows' covariance `(W, W)`.
+
+    **Returns:** the share `n_eff / n`, a float, at most 1."""
     import arviz_stats as az
 
     R, W, K = L.shape
@@ -402,11 +481,14 @@ def effective_share(L, Y, cov) -> float:
 def weak_stats(Y, L, cov) -> sampler.SuffStats:
     """Whitened weak-form statistics of every regressed equation, pooled over records.
 
-    **Arguments:** ``Y (R, W, q)`` the weak targets, ``L (R, W, K)`` the weak library
-    columns, ``cov (q, W, W)`` the rows' noise covariance per equation (the same in every
-    record; only its shape matters, the sampler fits the scale).
+    **Arguments:**
 
-    **Returns:** ``SuffStats`` batched over the ``q`` equations (``n = R W`` rows).
+    - `Y`: the weak targets `(R, W, q)`.
+    - `L`: the weak library columns `(R, W, K)`.
+    - `cov`: the rows' noise covariance per equation `(q, W, W)` (the same in every record;
+      only its shape matters, the sampler fits the scale).
+
+    **Returns:** `SuffStats` batched over the `q` equations (`n = R W` rows).
     """
 
     def one(y, c):
@@ -421,8 +503,8 @@ def weak_stats(Y, L, cov) -> sampler.SuffStats:
 
 
 def _library_states(nominal, x, x_index, u, dt, hw, noise_var, interpolation):
-    """The states the library is evaluated at ``(R, N, m)``, the variances of their
-    estimation error (``(m,)``, for the non-smooth terms' regression calibration) and how an
+    """The states the library is evaluated at `(R, N, m)`, the variances of their
+    estimation error (`(m,)`, for the non-smooth terms' regression calibration) and how an
     unmeasured velocity was estimated.
 
     Displacements are Savitzky-Golay smoothed (the noise of a nonlinear term is not in the
@@ -462,23 +544,36 @@ def weak_input_output_stats(nominal: LinearSecondOrder, lib: Library, t, x, u, *
                             equation_error: bool = True, reference=None) -> tuple[sampler.SuffStats, dict]:
     """Weak-form statistics from measured states without rates.
 
+    Long records are cut into segments, each a record of its own. Raises `DataError` when the
+    shapes disagree or a displacement or extra state is not measured.
+
     **Arguments:**
 
-    - ``t (N,)`` s (uniform); ``x (R, N, p)`` the measured states ``x_index`` (default all
-      ``m``: every displacement and extra state must be measured, a velocity may be missing);
-      ``u (R, N, n)`` inputs.
-    - ``width``/``stride`` in samples (default :func:`weak_windows`), ``power`` of the test
-      functions, ``interpolation`` of the inputs (``"held"`` integrates them exactly over each
-      step).
-    - ``noise_var (p,)`` the measured states' noise variances (default: from the
+    - `nominal`: the nominal model.
+    - `lib`: the library of `K` candidate terms.
+    - `t`: the sample times `(N,)`, s (uniform).
+    - `x`: the measured states `x_index`, `(R, N, p)`.
+    - `u`: inputs `(R, N, n)`.
+    - `x_index`: the indices of the measured states (default all `m`): every displacement
+      and extra state must be measured, a velocity may be missing.
+    - `width`: the window in samples (default: from `weak_windows`).
+    - `stride`: the step between windows' starts in samples (default: from `weak_windows`).
+    - `power`: p of the test functions `(s (1 - s))^p` (default `TEST_POWER`).
+    - `interpolation`: the inputs between samples: `"held"` (default) integrates them exactly
+      over each step; another (`"linear"`, `"bandlimited"`) by the trapezoid rule; it also
+      reaches the state-space smoother of an unmeasured velocity.
+    - `noise_var`: the measured states' noise variances `(p,)` (default: from the
       Savitzky-Golay residual of each, pooled over records).
-    - ``equation_error``: add a white equation error to the rows' covariance, its size by
-      restricted maximum likelihood (False: measurement noise only).
-    - ``reference``: ``(R, N, r)`` a closed loop's reference signal, or None; given, it is the
-      instrument of a two-stage least squares (:mod:`dtwin_jax.preprocess.instruments`).
+    - `equation_error`: add a white equation error to the rows' covariance, its size by
+      restricted maximum likelihood, and weigh the rows by their effective share (default
+      True; False: measurement noise only).
+    - `reference`: a closed loop's reference signal `(R, N, r)`, or None; given, it is the
+      instrument of a two-stage least squares (`dtwin_jax.preprocess.instruments`).
 
-    **Returns:** ``(SuffStats`` batched over the regressed equations``, description dict)``.
+    **Returns:** `(stats, info)`: `SuffStats` batched over the regressed equations, and a
+    description dict (window, noise, equation error share, velocities estimated ...).
     """
+
     t = np.asarray(t, dtype=np.float64)
     x, u = np.asarray(x, dtype=np.float64), np.asarray(u, dtype=np.float64)
     x_index = tuple(range(nominal.m)) if x_index is None else tuple(x_index)

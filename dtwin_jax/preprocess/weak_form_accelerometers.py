@@ -1,9 +1,9 @@
 """The weak form of framework 1 from accelerometers: the nominal part exact, whatever the states.
 
-With only the accelerations ``a`` of the degrees of freedom measured (and the force), the
+With only the accelerations `a` of the degrees of freedom measured (and the force), the
 displacement and velocity are unknown, and any estimate of them drifts below the first mode.
-Multiplying each velocity equation ``a_i = f_i(q, v, u) + Theta(q, v, u) theta`` by test
-functions ``chi_k''`` (the second derivative of ``chi_k = (s (1 - s))^p`` on a window of the
+Multiplying each velocity equation `a_i = f_i(q, v, u) + Theta(q, v, u) theta` by test
+functions `chi_k''` (the second derivative of `chi_k = (s (1 - s))^p` on a window of the
 record) and integrating by parts twice moves both time derivatives of the unknown states onto
 the test function:
 
@@ -11,14 +11,14 @@ the test function:
 
 so the nominal model's part of every row is the measured acceleration through three known
 filters, exactly, and a constant force (nothing an accelerometer sees) drops out. Only the
-library terms see the estimated states (:mod:`dtwin_jax.preprocess.accelerometers`), through ``chi''``,
-which weighs a frequency ``w`` by ``w^2``: the integrated noise of the states (``1 / w^2``)
+library terms see the estimated states (`dtwin_jax.preprocess.accelerometers`), through `chi''`,
+which weighs a frequency `w` by `w^2`: the integrated noise of the states (`1 / w^2`)
 comes out flat.
 
 The rows' covariance (one per equation) has three parts: the accelerometers' white noise
 through the three filters; a white equation error of unknown size (the force sensor's noise,
 process noise, what the library misses), by restricted maximum likelihood as in
-:mod:`dtwin_jax.preprocess.weak_form`; and, when draws of the states' estimation error are given, the
+`dtwin_jax.preprocess.weak_form`; and, when draws of the states' estimation error are given, the
 error it puts into the selected terms (errors in variables), so that a coefficient of a term
 of poorly known states gets the wider interval it should.
 """
@@ -59,14 +59,20 @@ _SEGMENT_BYTES = 3 << 30
 
 def accelerometer_kernels(dt: float, width: int, held: bool,
                           power: int = TEST_POWER) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
-    """The quadrature weights of ``chi``, ``chi'``, ``chi''`` on one window, for smooth signals
-    (trapezoid) and for a held input (exact over each held step); :func:`window_filter` places
+    """The quadrature weights of `chi`, `chi'`, `chi''` on one window, for smooth signals
+    (trapezoid) and for a held input (exact over each held step); `window_filter` places
     them on every window of a record.
 
-    **Arguments:** ``dt`` s, window ``width`` in samples, ``held``: inputs held over each step
-    (else band-limited: the trapezoid), ``power`` p.
+    **Arguments:**
 
-    **Returns:** ``((phi, dphi, ddphi), (phi_h, dphi_h, ddphi_h))``, each ``(width,)``."""
+    - `dt`: the sample step, s.
+    - `width`: the window in samples.
+    - `held`: inputs held over each step (else band-limited: the trapezoid, and the second
+      triple equals the first).
+    - `power`: p of `chi = (s (1 - s))^p` (default `TEST_POWER`).
+
+    **Returns:** `((phi, dphi, ddphi), (phi_h, dphi_h, ddphi_h))`, each `(width,)`: the smooth
+    signals' weights and the held input's."""
     phi, dphi, ddphi, held_w = bump_functions(width, dt, power)
     if not held:
         return (phi, dphi, ddphi), (phi, dphi, ddphi)
@@ -76,8 +82,17 @@ def accelerometer_kernels(dt: float, width: int, held: bool,
 
 
 def constant_columns(lib: Library, x, u) -> list[int]:
-    """Library columns constant on the data ``x (R, N, m)``, ``u (R, N, n)``: a constant force
-    shifts the static displacement only, which accelerometers do not see."""
+    """Library columns constant on the data: a constant force shifts the static displacement
+    only, which accelerometers do not see.
+
+    **Arguments:**
+
+    - `lib`: the library of `K` candidate terms.
+    - `x`: states `(R, N, m)`.
+    - `u`: inputs `(R, N, n)`.
+
+    **Returns:** the indices of the columns whose spread is at most `1e-12` of their largest
+    magnitude."""
     m = x.shape[-1]
     L = np.asarray(lib(jnp.asarray(np.reshape(x, (-1, m))), jnp.asarray(np.reshape(u, (-1, u.shape[-1])))))
     spread = np.max(L, axis=0) - np.min(L, axis=0)
@@ -85,9 +100,17 @@ def constant_columns(lib: Library, x, u) -> list[int]:
 
 
 def segment_samples(num_samples: int, width: int, d: int) -> int:
-    """The longest segment (at most ``num_samples``, at least 4 windows; halving) whose rows'
-    dense matrices fit ``_SEGMENT_BYTES``: ``W`` windows of ``width`` samples every
-    ``width // 8``, ``(9 + 5 d) W^2`` doubles for ``d`` equations."""
+    """The longest segment (at most `num_samples`, at least 4 windows; halving) whose rows'
+    dense matrices fit `_SEGMENT_BYTES`: `W` windows of `width` samples every
+    `width // 8`, `(9 + 5 d) W^2` doubles for `d` equations.
+
+    **Arguments:**
+
+    - `num_samples`: the samples per record.
+    - `width`: the window in samples.
+    - `d`: the number of equations (degrees of freedom).
+
+    **Returns:** the segment length in samples."""
     stride = max(1, width // 8)
     n = num_samples
     while n > 4 * width and 8 * (9 + 5 * d) * ((n - width) // stride + 1) ** 2 > _SEGMENT_BYTES:
@@ -96,10 +119,10 @@ def segment_samples(num_samples: int, width: int, d: int) -> int:
 
 
 def _rows(nominal: LinearSecondOrder, dt: float, a, u, interpolation: str, width, power: int) -> dict:
-    """The weak targets ``Y (R, W, d)`` and what builds them: the filtered accelerations
-    ``int chi a``, ``int chi' a`` (``(R, W, d)`` each), the smooth filters, the weights
-    ``ops (d, d, 3)`` of the three filtered accelerations in each equation, and the
-    accelerometers' noise variances ``(d,)``."""
+    """The weak targets `Y (R, W, d)` and what builds them: the filtered accelerations
+    `int chi a`, `int chi' a` (`(R, W, d)` each), the smooth filters, the weights
+    `ops (d, d, 3)` of the three filtered accelerations in each equation, and the
+    accelerometers' noise variances `(d,)`."""
     R, N, d = a.shape
     m = nominal.m
     w0, _ = weak_windows(nominal, dt, N)
@@ -131,12 +154,24 @@ def _rows(nominal: LinearSecondOrder, dt: float, a, u, interpolation: str, width
 
 
 def equivalent_linear(nominal: LinearSecondOrder, dt: float, a, u, interpolation: str = "held") -> np.ndarray:
-    """The linear correction ``(d, 2d)`` (acceleration units) that best fits the accelerations,
-    ``a = f(q, v, u) + Delta [q; v]``: its columns ``int chi'' q = int chi a`` and ``int chi'' v =
-    -int chi' a`` need no state estimate. A start for the states of a strongly nonlinear
-    structure, whose nominal model is far from its equivalent linearization.
+    """The linear correction `(d, 2d)` (acceleration units) that best fits the accelerations,
+    `a = f(q, v, u) + Delta [q; v]`: its columns `int chi'' q = int chi a` and
+    `int chi'' v = -int chi' a` need no state estimate. A start for the states of a strongly
+    nonlinear structure, whose nominal model is far from its equivalent linearization.
 
-    ``a (R, N, d)``, ``u (R, N, n)``; least squares over every window and record."""
+    Least squares over every window (the default of `weak_windows`) and record.
+
+    **Arguments:**
+
+    - `nominal`: the nominal model.
+    - `dt`: the sample step, s.
+    - `a`: measured accelerations of the degrees of freedom `(R, N, d)`.
+    - `u`: measured inputs `(R, N, n)`.
+    - `interpolation`: the inputs between samples: `"held"` (default, integrated exactly
+      over each held step) or `"bandlimited"`.
+
+    **Returns:** `Delta`, `(d, 2d)`: the correction's displacement then velocity columns, in
+    acceleration units per state unit."""
     rows = _rows(nominal, dt, np.asarray(a, dtype=np.float64), np.asarray(u, dtype=np.float64), interpolation,
                  None, TEST_POWER)
     d = rows["Y"].shape[-1]
@@ -154,21 +189,27 @@ def accelerometer_weak_stats(nominal: LinearSecondOrder, lib: Library, dt: float
 
     **Arguments:**
 
-    - ``nominal``: the nominal model (no extra states).
-    - ``dt``: sample step, s.
-    - ``a``: ``(R, N, d)`` measured accelerations of the degrees of freedom (state units / s^2).
-    - ``u``: ``(R, N, n)`` measured inputs.
-    - ``x``: ``(R, N, m)`` estimated states, where the library is evaluated.
-    - ``interpolation``: ``"held"`` (inputs integrated exactly over each held step) or
-      ``"bandlimited"``.
-    - ``state_draws``: ``(S, R, N, m)`` draws of the states' estimation error, or None; with
-      ``coef (q, K)``, the error they put into those terms enters the rows' covariance.
-    - ``equation_error``: add a white equation error sized by REML.
-    - ``width``: window in samples (default: one period of the fastest nominal mode).
-    - ``power``: p of ``chi = (s (1 - s))^p``.
+    - `nominal`: the nominal model (no extra states).
+    - `lib`: the library of `K` candidate terms.
+    - `dt`: sample step, s.
+    - `a`: `(R, N, d)` measured accelerations of the degrees of freedom (state units / s^2).
+    - `u`: `(R, N, n)` measured inputs.
+    - `x`: `(R, N, m)` estimated states, where the library is evaluated.
+    - `interpolation`: `"held"` (default: inputs integrated exactly over each held step) or
+      `"bandlimited"`.
+    - `state_draws`: `(S, R, N, m)` draws of the states' estimation error, or None; with
+      `coef`, the error they put into those terms enters the rows' covariance.
+    - `coef`: `(q, K)` coefficients of the terms, one row per velocity equation, or None;
+      used only with `state_draws`.
+    - `equation_error`: add a white equation error sized by REML, and weigh the rows by their
+      effective share (default True).
+    - `width`: window in samples (default: one period of the fastest nominal mode); the
+      stride is `width // 8`.
+    - `power`: p of `chi = (s (1 - s))^p` (default `TEST_POWER`).
 
-    **Returns:** ``(SuffStats`` batched over the velocity equations (all ``K`` columns;
-    columns constant on the data are zero)``, description dict)``."""
+    **Returns:** `(stats, info)`: `SuffStats` batched over the velocity equations (all `K`
+    columns; columns constant on the data are zero), and a description dict."""
+
     a, u, x = (np.asarray(v, dtype=np.float64) for v in (a, u, x))
     d = a.shape[-1]
     width = weak_windows(nominal, dt, a.shape[1])[0] if width is None else int(width)

@@ -1,7 +1,7 @@
 """Spike-and-slab Gibbs sampler for sparse Bayesian linear regression, from sufficient
-statistics: the kernel (:mod:`~dtwin_jax.sampler.kernel`, blackjax-style ``init`` / ``step``),
-the chains' starts (:mod:`~dtwin_jax.sampler.starts`) and the drivers that run them
-(:mod:`~dtwin_jax.sampler.driver`). Every public name of the three is importable from here."""
+statistics: the kernel (`dtwin_jax.sampler.kernel`, blackjax-style `init` / `step`),
+the chains' starts (`dtwin_jax.sampler.starts`) and the drivers that run them
+(`dtwin_jax.sampler.driver`). Every public name of the three is importable from here."""
 
 from dtwin_jax.sampler import driver, kernel, starts
 from dtwin_jax.sampler.driver import *  # noqa: F403

@@ -1,8 +1,8 @@
-"""Running chains: the sampler's settings, :func:`sample` (jittable, vmappable) and
-:func:`sample_in_chunks` (the same draws, run from Python in calls of :data:`CHUNK` sweeps).
+"""Running chains: the sampler's settings, `sample` (jittable, vmappable) and
+`sample_in_chunks` (the same draws, run from Python in calls of `CHUNK` sweeps).
 
-Both standardise the statistics, start the chains (:mod:`dtwin_jax.sampler.starts`), run
-the kernel's sweeps (:mod:`dtwin_jax.sampler.kernel`) and return the draws in physical
+Both standardise the statistics, start the chains (`dtwin_jax.sampler.starts`), run
+the kernel's sweeps (`dtwin_jax.sampler.kernel`) and return the draws in physical
 units. Libraries are run padded with zero columns to 16, 32, 64, 128 or 256 terms, so that
 one compiled program serves every library of a size class; the padding is no term (the
 kernel's zero columns) and is cut from the draws.
@@ -47,17 +47,20 @@ class SamplerSettings:
 
     **Arguments:**
 
-    - ``num_chains``, ``num_draws``, ``num_burnin``: chains, kept draws per chain and the
-      sweeps dropped before them.
-    - ``prior``: the :class:`~dtwin_jax.sampler.kernel.SpikeSlabPrior` hyperparameters.
-    - ``p0``, ``v_s``: the prior inclusion probability and slab variance the chains start at.
-    - ``max_active``: the largest model (default ``min(K, 32)``): the prior truncated there.
-    - ``swap``: each sweep ends with an exchange move between correlated terms.
-    - ``chain_method``: ``"vectorized"`` (vmap over chains) or ``"sequential"`` (``lax.map``);
+    - `num_chains`: the number of chains (default 4).
+    - `num_draws`: the draws kept per chain (default 2000).
+    - `num_burnin`: the sweeps dropped before them (default 1000).
+    - `prior`: the `dtwin_jax.sampler.kernel.SpikeSlabPrior` hyperparameters.
+    - `p0`: the prior inclusion probability the chains start at (default 0.1).
+    - `v_s`: the slab variance (relative to `sigma2`) the chains start at (default 10).
+    - `max_active`: the largest model; None (default): 16, 24 or 32 by the library's real K
+      (`dtwin_jax._compile.buckets.active_slots`), at most K. The prior is truncated there.
+    - `swap`: each sweep ends with an exchange move between correlated terms (default True).
+    - `chain_method`: `"vectorized"` (vmap over chains) or `"sequential"` (`lax.map`);
       None picks vectorized on accelerators and sequential on CPU, where XLA runs the vmapped
-      indicator loop 2-4x slower per chain (benchmarks/sampler_speed.py).
-    - ``init_strategy``: the chains' starts, ``"dispersed"``, ``"random"`` or ``"greedy"``
-      (:func:`dtwin_jax.sampler.starts.initial_indicators`).
+      indicator loop slower per chain (`benchmarks/sampler_speed.py`).
+    - `init_strategy`: the chains' starts, `"dispersed"` (default), `"random"` or `"greedy"`
+      (`dtwin_jax.sampler.starts.initial_indicators`).
     """
 
     num_chains: int = 4
@@ -80,20 +83,20 @@ def sample(key: jax.Array, stats: SuffStats, settings: SamplerSettings | None = 
            **overrides) -> GibbsTrace:
     """Standardise, run the chains and return the draws in physical units.
 
+    Jittable and vmappable over `key` and `stats` (with `progress` False).
+
     **Arguments:**
 
-    - ``key``: PRNG key.
-    - ``stats``: :class:`~dtwin_jax.sampler.kernel.SuffStats` of one regression (K terms).
-    - ``settings``: :class:`SamplerSettings` (default: its defaults); keyword ``overrides``
-      replace its fields (``sample(key, stats, num_draws=500)``).
-    - ``progress``: a bar of the sweeps (runs :func:`sample_in_chunks`, whose draws are
-      the same; not under ``jit``).
+    - `key`: PRNG key.
+    - `stats`: `dtwin_jax.sampler.kernel.SuffStats` of one regression (K terms), physical units.
+    - `settings`: `SamplerSettings`, or None (default) for its defaults.
+    - `progress`: a bar of the sweeps (runs `sample_in_chunks`, whose draws are the same;
+      not under `jit`).
+    - `**overrides`: fields of `settings` to replace, e.g. `sample(key, stats, num_draws=500)`.
 
-    **Returns:**
-
-    A :class:`~dtwin_jax.sampler.kernel.GibbsTrace`, leading axes ``(num_chains, num_draws)``:
-    ``theta (C, D, K)`` in the units of ``y`` per unit of each library column, ``sigma2`` in
-    units of ``y**2``. Jittable and vmappable over ``key`` and ``stats`` (``progress`` False).
+    **Returns:** a `dtwin_jax.sampler.kernel.GibbsTrace`, leading axes `(num_chains, num_draws)`:
+    `gamma (C, D, K)` bool, `theta (C, D, K)` in the units of `y` per unit of each library
+    column, `sigma2 (C, D)` in units of `y**2`, `v_s`, `p0` and `log_marginal` `(C, D)`.
     """
     s = _settings(settings, overrides)
     if progress:
@@ -111,7 +114,7 @@ def sample(key: jax.Array, stats: SuffStats, settings: SamplerSettings | None = 
 
 
 sample_jit = jax.jit(sample, static_argnames=("settings", "progress", *(f.name for f in dataclasses.fields(SamplerSettings))))
-sample_jit.__doc__ = "``jax.jit`` of :func:`sample` (``progress`` must be False)."
+sample_jit.__doc__ = "`jax.jit` of `sample` (`progress` must be False)."
 
 # Sweeps per call of :func:`sample_in_chunks`' compiled program: ~11 ms of work at K = 36,
 # against ~0.1 ms to dispatch a call.
@@ -120,20 +123,25 @@ CHUNK = 250
 
 def sample_in_chunks(key: jax.Array, stats: SuffStats, settings: SamplerSettings | None = None, *,
                      progress: bool = False, **overrides) -> GibbsTrace:
-    """:func:`sample` run from Python in calls of :data:`CHUNK` sweeps, with the same draws.
+    """`sample` run from Python in calls of `CHUNK` sweeps, with the same draws.
 
     Its compiled programs depend on the library's size class, the chains and the prior, not
-    on ``num_draws``, ``num_burnin`` or K within a class, so updates of other lengths and
-    other libraries reuse them (compiling one takes seconds; a chunk at K = 36,
-    milliseconds). The last chunk is padded; its extra sweeps are dropped. Not jittable (use
-    :func:`sample` inside ``jit``).
+    on `num_draws`, `num_burnin` or K within a class, so updates of other lengths and
+    other libraries reuse them (compiling one takes far longer than running a chunk). The
+    last chunk is padded; its extra sweeps are dropped. Not jittable (use `sample` inside
+    `jit`).
 
-    **Arguments:** ``key``, ``stats``, ``settings`` and ``overrides`` as in :func:`sample`;
-    ``progress``: a bar of the sweeps, advanced after each chunk (an enclosing bar, if one
-    is open, counts them instead).
+    **Arguments:**
 
-    **Returns:** a :class:`~dtwin_jax.sampler.kernel.GibbsTrace` of host (numpy) arrays,
-    leading axes ``(num_chains, num_draws)``, in physical units as :func:`sample`'s.
+    - `key`: PRNG key, as in `sample`.
+    - `stats`: `dtwin_jax.sampler.kernel.SuffStats` of one regression (K terms), physical units.
+    - `settings`: `SamplerSettings`, or None (default) for its defaults.
+    - `progress`: a bar of the sweeps, advanced after each chunk (an enclosing bar, if one
+      is open, counts them instead).
+    - `**overrides`: fields of `settings` to replace, as in `sample`.
+
+    **Returns:** a `dtwin_jax.sampler.kernel.GibbsTrace` of host (numpy) arrays, leading axes
+    `(num_chains, num_draws)`, in physical units as `sample`'s.
     """
     s = _settings(settings, overrides)
     K = stats.gram.shape[-1]
@@ -157,13 +165,13 @@ def sample_in_chunks(key: jax.Array, stats: SuffStats, settings: SamplerSettings
 
 
 def _with_slots(s: SamplerSettings, K: int) -> SamplerSettings:
-    """``s`` with the default ``max_active`` resolved on the real ``K`` (:func:`active_slots`),
+    """`s` with the default `max_active` resolved on the real `K` (`active_slots`),
     before the library is padded."""
     return s if s.max_active is not None else dataclasses.replace(s, max_active=active_slots(K))
 
 
 def _chunk_setup(key, stats: SuffStats, s: SamplerSettings):
-    """Scaled statistics, scales, per-sweep keys ``(C, chunks * CHUNK)`` and starting states."""
+    """Scaled statistics, scales, per-sweep keys `(C, chunks * CHUNK)` and starting states."""
     setup = (s.prior, float(s.p0), float(s.v_s), s.max_active, s.num_chains, s.init_strategy)
     scaled, col, ys, chain_keys, states = _setup_program(key, stats, *setup)
     total = s.num_burnin + s.num_draws
@@ -181,7 +189,7 @@ def _chunk(keys, states, scaled, s: SamplerSettings):
 @aot.exported("sampler_setup", static_argnums=(2, 3, 4, 5, 6, 7))
 @quick_jit(static_argnums=(2, 3, 4, 5, 6, 7))
 def _setup_program(key, stats, prior, p0, v_s, max_active, num_chains, init_strategy):
-    """:func:`sample`'s set-up but for the per-sweep keys: scaled statistics, scales, one
+    """`sample`'s set-up but for the per-sweep keys: scaled statistics, scales, one
     key per chain and the starting states."""
     scaled, col, ys = standardize(stats)
     states = starting_states(key, scaled, prior, p0, v_s, max_active, num_chains, init_strategy)
@@ -190,19 +198,29 @@ def _setup_program(key, stats, prior, p0, v_s, max_active, num_chains, init_stra
 
 @quick_jit(static_argnums=(1, 2))
 def _step_keys(chain_keys, total: int, padded: int):
-    """``(C, padded)`` per-sweep keys: :func:`sample`'s ``total`` keys per chain, then the
+    """`(C, padded)` per-sweep keys: `sample`'s `total` keys per chain, then the
     last one repeated (sweeps that are run and dropped)."""
     keys = jax.vmap(lambda k: jax.random.split(k, total))(chain_keys)
     return jnp.concatenate([keys, jnp.repeat(keys[:, -1:], padded - total, axis=1)], axis=1)
 
 
 def default_batch_method() -> str:
-    """``"vectorized"`` on GPU/TPU, ``"sequential"`` on CPU."""
+    """`"vectorized"` on GPU/TPU, `"sequential"` on CPU."""
     return "sequential" if jax.default_backend() == "cpu" else "vectorized"
 
 
 def batch_map(fn, method: str, *args):
-    """``fn`` over the leading axis of ``args``: ``jax.vmap`` or ``lax.map`` by ``method``."""
+    """`fn` over the leading axis of `args`: `jax.vmap` or `lax.map` by `method`.
+
+    **Arguments:**
+
+    - `fn`: the function of one element, called as `fn(*slices)`; returns a pytree of arrays.
+    - `method`: `"vectorized"` (`jax.vmap`) or `"sequential"` (`lax.map`); any other raises
+      `ValueError`.
+    - `*args`: pytrees of arrays with a common leading axis, mapped over together.
+
+    **Returns:** `fn`'s outputs stacked along a new leading axis.
+    """
     if method == "vectorized":
         return jax.vmap(fn)(*args)
     if method == "sequential":

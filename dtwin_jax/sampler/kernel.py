@@ -1,6 +1,6 @@
 """Spike-and-slab Gibbs sampler for sparse Bayesian linear regression.
 
-The model (the paper's Section 3, Fig. 1), for a target ``y (N,)`` and library ``L (N, K)``:
+The model (the paper's Section 3, Fig. 1), for a target `y (N,)` and library `L (N, K)`:
 
     y | theta, sigma2        ~ N(L theta, sigma2 I)
     theta_k | gamma_k = 0    = 0                              (Dirac spike)
@@ -10,32 +10,32 @@ The model (the paper's Section 3, Fig. 1), for a target ``y (N,)`` and library `
 
 One step is a partially collapsed Gibbs sweep:
 
-1. each indicator ``gamma_k`` in random order from ``p(gamma_k | gamma_-k, v_s, p0, y)``, with
-   ``theta`` and ``sigma2`` integrated out (the paper's Appendix A);
-2. ``sigma2 ~ p(sigma2 | gamma, v_s, y)`` (``theta`` integrated out), then
-   ``theta ~ p(theta | gamma, sigma2, v_s, y)``;
-3. ``v_s ~ p(v_s | theta, sigma2, gamma)`` and ``p0 ~ p(p0 | gamma)``.
+1. each indicator `gamma_k` in random order from `p(gamma_k | gamma_-k, v_s, p0, y)`, with
+   `theta` and `sigma2` integrated out (the paper's Appendix A);
+2. `sigma2 ~ p(sigma2 | gamma, v_s, y)` (`theta` integrated out), then
+   `theta ~ p(theta | gamma, sigma2, v_s, y)`;
+3. `v_s ~ p(v_s | theta, sigma2, gamma)` and `p0 ~ p(p0 | gamma)`.
 
-Everything works from the sufficient statistics ``L^T L``, ``L^T y``, ``y^T y`` and ``N``:
+Everything works from the sufficient statistics `L^T L`, `L^T y`, `y^T y` and `N`:
 nothing of size N x N is formed and a sweep's cost does not depend on N. The indicator
-updates keep ``P = A^-1`` of the active block ``A = L_g^T L_g + I / v_s`` in ``R = max_active``
-slots (zeros off the active set), refactorised once per sweep (``v_s`` has changed). An
-indicator's conditional depends on the others only through ``P``, so the sweep computes the
-log-odds of all K indicators at once (O(K R^2)) and jumps to the next one in its order whose
-uniform flips it; a flip is a rank-one Schur-complement update (O(K R)). A sweep costs
-O(K R^2 + flips K R) instead of K sequential O(R^2) steps, with the same draws. A sweep that
-flips nothing draws ``sigma2`` and ``theta`` from the factorisation it started with.
+updates keep `P = A^-1` of the active block `A = L_g^T L_g + I / v_s` in `R = max_active`
+slots (zeros off the active set), refactorised once per sweep (`v_s` has changed). An
+indicator's conditional depends on the others only through `P`, so the sweep computes the
+log-odds of all K indicators at once (`O(K R^2)`) and jumps to the next one in its order whose
+uniform flips it; a flip is a rank-one Schur-complement update (`O(K R)`). A sweep costs
+`O(K R^2 + flips K R)` instead of K sequential `O(R^2)` steps, with the same draws. A sweep that
+flips nothing draws `sigma2` and `theta` from the factorisation it started with.
 
-A column that is zero on every row (``gram[k, k] == 0``) is no term: its indicator stays 0 and
-it does not count in ``p0``'s update. The driver (:mod:`dtwin_jax.sampler.driver`) pads
+A column that is zero on every row (`gram[k, k] == 0`) is no term: its indicator stays 0 and
+it does not count in `p0`'s update. The driver (`dtwin_jax.sampler.driver`) pads
 libraries with such columns to a few sizes, so that one compiled program serves them all.
 
-The kernel follows blackjax: ``init(stats) -> GibbsState`` and
-``step(key, state, stats) -> (GibbsState, GibbsInfo)`` are pure functions of NamedTuples,
+The kernel follows blackjax: `init(stats) -> GibbsState` and
+`step(key, state, stats) -> (GibbsState, GibbsInfo)` are pure functions of NamedTuples,
 jittable, vmappable over chains and over independent problems.
 
-The chains' starting indicators are in :mod:`dtwin_jax.sampler.starts`; the drivers that run
-them, in :mod:`dtwin_jax.sampler.driver`.
+The chains' starting indicators are in `dtwin_jax.sampler.starts`; the drivers that run
+them, in `dtwin_jax.sampler.driver`.
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ __all__ = [
 
 
 class SpikeSlabPrior(NamedTuple):
-    """Hyperparameters (the paper's defaults; its authors' code uses a_sigma = b_sigma = 1e-4)."""
+    """Hyperparameters (the paper's defaults; its authors' code uses `a_sigma = b_sigma = 1e-4`)."""
 
     a_p: float = 0.1
     b_p: float = 1.0
@@ -77,7 +77,7 @@ class SpikeSlabPrior(NamedTuple):
 
 
 class SuffStats(NamedTuple):
-    """Sufficient statistics of one regression ``y = L theta + eps``."""
+    """Sufficient statistics of one regression `y = L theta + eps`."""
 
     gram: jax.Array  # (K, K)  L^T L
     xty: jax.Array  # (K,)    L^T y
@@ -99,7 +99,7 @@ class GibbsInfo(NamedTuple):
 
 
 class GibbsTrace(NamedTuple):
-    """Draws of one or more chains: leading axes ``(..., num_draws)``."""
+    """Draws of one or more chains: leading axes `(..., num_draws)`."""
 
     gamma: jax.Array  # (..., D, K)
     theta: jax.Array  # (..., D, K)
@@ -112,9 +112,12 @@ class GibbsTrace(NamedTuple):
 def suff_stats(L: jax.Array, y: jax.Array) -> SuffStats:
     """Sufficient statistics of one regression.
 
-    **Arguments:** ``L (N, K)`` the library's columns, ``y (N,)`` the target.
+    **Arguments:**
 
-    **Returns:** :class:`SuffStats` ``(L^T L (K, K), L^T y (K,), y^T y, N)``, float64.
+    - `L`: the library's columns, shape `(N, K)`.
+    - `y`: the target, shape `(N,)`.
+
+    **Returns:** `SuffStats` `(L^T L (K, K), L^T y (K,), y^T y (), N ())`, float64.
     """
     L = jnp.asarray(L, dtype=jnp.float64)
     y = jnp.asarray(y, dtype=jnp.float64)
@@ -122,26 +125,33 @@ def suff_stats(L: jax.Array, y: jax.Array) -> SuffStats:
 
 
 def weigh(stats: SuffStats, factor) -> SuffStats:
-    """Batched equations' statistics, each counted ``factor`` times: its rows' effective
-    share (``n_eff / n``) keeps the estimates and widens the posterior to match.
+    """Batched equations' statistics, each counted `factor` times: its rows' effective
+    share (`n_eff / n`) keeps the estimates and widens the posterior to match.
 
-    **Arguments:** ``stats``: :class:`SuffStats` batched over ``q`` equations (leading axis);
-    ``factor``: ``(q,)``. NumPy in, NumPy out (host-side steps); jax arrays too.
+    NumPy in, NumPy out (host-side steps); jax arrays too.
 
-    **Returns:** :class:`SuffStats`, every field times its equation's factor.
+    **Arguments:**
+
+    - `stats`: `SuffStats` batched over `q` equations (leading axis).
+    - `factor`: the equations' factors, shape `(q,)`.
+
+    **Returns:** `SuffStats`, every field times its equation's factor.
     """
     return SuffStats(*(a * factor[(slice(None),) + (None,) * (a.ndim - 1)] for a in stats))
 
 
 def standardize(stats: SuffStats) -> tuple[SuffStats, jax.Array, jax.Array]:
     """Scale every column and the target to unit root-mean-square, so that the slab prior and
-    the inverse-gamma prior on ``sigma2`` mean the same thing whatever the units of the data.
+    the inverse-gamma prior on `sigma2` mean the same thing whatever the units of the data.
 
-    **Arguments:** ``stats``: :class:`SuffStats` (K terms; a zero column keeps scale 1).
+    **Arguments:**
 
-    **Returns:** ``(scaled_stats, column_scale (K,), target_scale ())``. A coefficient ``beta``
-    of the scaled problem is ``theta = beta * target_scale / column_scale`` in physical units
-    and a scaled variance ``s2`` is ``s2 * target_scale**2``.
+    - `stats`: `SuffStats` (K terms; a zero column keeps scale 1).
+
+    **Returns:** `(scaled_stats, column_scale, target_scale)`: the scaled `SuffStats`, the
+    columns' RMS `(K,)` and the target's RMS `()`. A coefficient `beta` of the scaled problem
+    is `theta = beta * target_scale / column_scale` in physical units and a scaled variance
+    `s2` is `s2 * target_scale**2`.
     """
     col = jnp.sqrt(jnp.diagonal(stats.gram) / stats.n)
     col = jnp.where(col > 0, col, 1.0)
@@ -157,7 +167,19 @@ def standardize(stats: SuffStats) -> tuple[SuffStats, jax.Array, jax.Array]:
 
 
 def log_marginal(num_active, logdet, quad, v_s, stats: SuffStats, prior: SpikeSlabPrior):
-    """log p(y | gamma, v_s) up to a constant, with theta and sigma2 integrated out."""
+    """`log p(y | gamma, v_s)` up to a constant, with `theta` and `sigma2` integrated out.
+
+    **Arguments:**
+
+    - `num_active`: the number of active terms `r`, `()`.
+    - `logdet`: the log-determinant of the active block `A = L_g^T L_g + I / v_s`, `()`.
+    - `quad`: the quadratic form `b_g^T A^-1 b_g` (`b = L^T y`), `()`.
+    - `v_s`: the slab variance (relative to `sigma2`), `()`.
+    - `stats`: the `SuffStats` (standardised).
+    - `prior`: the `SpikeSlabPrior`.
+
+    **Returns:** the log marginal likelihood, `()`, up to an additive constant.
+    """
     resid = jnp.maximum(stats.yty - quad, 1e-300)
     shape = prior.a_sigma + 0.5 * stats.n
     return (
@@ -181,12 +203,27 @@ def _factor(gram, xty, gamma, v_s):
 
 
 def slots(K: int, max_active: int | None) -> int:
-    """The number of active-set slots ``R`` (static): ``max_active``, default 32, at most K."""
+    """The number of active-set slots `R` (static): `max_active`, default 32, at most K.
+
+    **Arguments:**
+
+    - `K`: the number of library columns.
+    - `max_active`: the largest model, or None for 32.
+
+    **Returns:** `R`, a Python int.
+    """
     return min(K, 32) if max_active is None else min(K, int(max_active))
 
 
 def present_terms(stats: SuffStats) -> jax.Array:
-    """``(K,)`` bool: the columns that are terms (not zero on every row)."""
+    """The columns that are terms (not zero on every row).
+
+    **Arguments:**
+
+    - `stats`: `SuffStats` with `gram (K, K)`.
+
+    **Returns:** `(K,)` bool, True for a term.
+    """
     return jnp.diagonal(stats.gram) > 0
 
 
@@ -206,16 +243,17 @@ def init(
 
     **Arguments:**
 
-    - ``stats``: :class:`SuffStats` (standardised: :func:`standardize`).
-    - ``prior``: the :class:`SpikeSlabPrior`.
-    - ``p0``, ``v_s``: the starting inclusion probability and slab variance (the paper's 0.1
-      and 10).
-    - ``gamma``: ``(K,)`` bool starting indicators; None: the greedy forward selection
-      (:func:`dtwin_jax.sampler.starts.greedy_indicators`).
-    - ``max_active``: the largest model (default ``min(K, 32)``).
+    - `stats`: `SuffStats` (standardised: `standardize`).
+    - `prior`: the `SpikeSlabPrior`.
+    - `p0`: the starting inclusion probability (the paper's 0.1).
+    - `v_s`: the starting slab variance, relative to `sigma2` (the paper's 10).
+    - `gamma`: `(K,)` bool starting indicators; None: the greedy forward selection
+      (`dtwin_jax.sampler.starts.greedy_indicators`).
+    - `max_active`: the largest model for the greedy selection (default `min(K, 32)`); used
+      only when `gamma` is None.
 
-    **Returns:** :class:`GibbsState` with ``theta`` the posterior mean given ``gamma`` and
-    ``sigma2`` the residual variance.
+    **Returns:** `GibbsState` with `theta (K,)` the posterior mean given `gamma` and
+    `sigma2` the residual variance.
     """
     p0 = jnp.asarray(p0, stats.gram.dtype)
     v_s = jnp.asarray(v_s, stats.gram.dtype)
@@ -234,8 +272,8 @@ def init(
 
 
 def _active_slots(gamma, R):
-    """The first ``R`` active indices in slots ``(R,)`` (``K`` marks an empty slot), and the
-    slot of every term ``(K,)`` (``R`` when inactive)."""
+    """The first `R` active indices in slots `(R,)` (`K` marks an empty slot), and the
+    slot of every term `(K,)` (`R` when inactive)."""
     K = gamma.shape[0]
     slot_idx = jnp.nonzero(gamma, size=R, fill_value=K)[0].astype(jnp.int32)
     slot_of = jnp.full(K + 1, R, jnp.int32).at[slot_idx].set(jnp.arange(R, dtype=jnp.int32))
@@ -262,14 +300,14 @@ def _indicator_sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrio
 
 
 def _sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrior, R: int):
-    """:func:`_indicator_sweep`, also returning whether any indicator flipped and the active
-    block's factorisation at the start, ``(slot_idx, chol, logdet, mean, quad)``.
+    """`_indicator_sweep`, also returning whether any indicator flipped and the active
+    block's factorisation at the start, `(slot_idx, chol, logdet, mean, quad)`.
 
-    The inverse ``P (R, R)`` of the active block lives in ``R = max_active`` slots. An
-    indicator's conditional depends on the others only through ``P``, which changes only when
+    The inverse `P (R, R)` of the active block lives in `R = max_active` slots. An
+    indicator's conditional depends on the others only through `P`, which changes only when
     an indicator flips: so the log-odds of all K indicators are computed at once from
-    ``U = P G_act (R, K)``, the sweep jumps to the next indicator (in the random order) whose
-    uniform flips it, flips it by rank-one updates of ``P`` and ``U`` (O(R K)) and
+    `U = P G_act (R, K)`, the sweep jumps to the next indicator (in the random order) whose
+    uniform flips it, flips it by rank-one updates of `P` and `U` (`O(R K)`) and
     recomputes. The same uniforms give the indicators of a one-at-a-time sweep, at a cost of
     (flips + 1) vectorised steps instead of K scalar ones.
     """
@@ -361,41 +399,41 @@ def _sweep(key, gamma, p0, v_s, stats: SuffStats, prior: SpikeSlabPrior, R: int)
 
 
 def _pick(u, weights):
-    """The index drawn with probability proportional to ``weights (K,)`` (non-negative) by
-    the inverse CDF at the uniform ``u``; ``K - 1`` when every weight is zero."""
+    """The index drawn with probability proportional to `weights (K,)` (non-negative) by
+    the inverse CDF at the uniform `u`; `K - 1` when every weight is zero."""
     cdf = jnp.cumsum(weights)
     return jnp.minimum(jnp.sum(cdf <= u * cdf[-1]), weights.shape[0] - 1).astype(jnp.int32)
 
 
 def _swap(key, gamma, current, v_s, stats: SuffStats, prior: SpikeSlabPrior):
-    """One Metropolis-Hastings exchange move on the indicators at fixed ``v_s``.
+    """One Metropolis-Hastings exchange move on the indicators at fixed `v_s`.
 
     Single-indicator Gibbs updates cross between two models that explain the data with
-    different, nearly collinear terms (``x2*Abs(x2)`` against ``x2 + x2**3``) only through
+    different, nearly collinear terms (`x2*Abs(x2)` against `x2 + x2**3`) only through
     an intermediate model holding both or neither, which the marginal likelihood can make
     very improbable: the chain then stays in whichever it found first. The exchange goes
-    straight across: an active term ``j`` (uniform) is proposed to be replaced by an
-    inactive ``k`` drawn with probability proportional to ``cos^2(L_j, L_k)`` (the squared
+    straight across: an active term `j` (uniform) is proposed to be replaced by an
+    inactive `k` drawn with probability proportional to `cos^2(L_j, L_k)` (the squared
     uncentred cosine of their columns, from the Gram), and the move is accepted on the
-    collapsed ``p(y | gamma, v_s)`` (the model size, hence the prior of ``gamma``, is
-    unchanged). The proposal's reverse draws ``k`` among the active terms of the new model
-    and ``j`` among its inactive ones with the same weights, so the Hastings ratio is
-    ``sum_{i inactive} w_ji / sum_{i inactive after} w_ki``. It leaves
-    ``p(gamma | y, v_s, p0)`` invariant (tests/test_ambiguity.py checks it against
+    collapsed `p(y | gamma, v_s)` (the model size, hence the prior of `gamma`, is
+    unchanged). The proposal's reverse draws `k` among the active terms of the new model
+    and `j` among its inactive ones with the same weights, so the Hastings ratio is
+    `sum_{i inactive} w_ji / sum_{i inactive after} w_ki`. It leaves
+    `p(gamma | y, v_s, p0)` invariant (`tests/test_ambiguity.py` checks it against
     enumeration).
 
     **Arguments:**
 
-    - ``key``: PRNG key.
-    - ``gamma``: ``(K,)`` bool, the indicators after the sweep.
-    - ``current``: the factorisation of ``gamma``'s active block in ``R`` slots,
-      ``(slot_idx (R,), chol (R, R), logdet (), mean (R,), quad ())`` as
-      :func:`_factor_slots` gives it.
-    - ``v_s``, ``stats``, ``prior``: as in :func:`step`.
+    - `key`: PRNG key.
+    - `gamma`: `(K,)` bool, the indicators after the sweep.
+    - `current`: the factorisation of `gamma`'s active block in `R` slots,
+      `(slot_idx (R,), chol (R, R), logdet (), mean (R,), quad ())` as
+      `_factor_slots` gives it.
+    - `v_s`, `stats`, `prior`: as in `step`.
 
     **Returns:**
 
-    ``(gamma (K,), factorisation)``: the proposal's when accepted, else the inputs.
+    `(gamma (K,), factorisation)`: the proposal's when accepted, else the inputs.
     """
     slot_idx, chol, logdet, mean, quad = current
     K = gamma.shape[0]
@@ -461,21 +499,22 @@ def step(
     max_active: int | None = None,
     swap: bool = True,
 ) -> tuple[GibbsState, GibbsInfo]:
-    """One Gibbs sweep: the indicators in random order, then ``sigma2``, ``theta``, ``v_s``
-    and ``p0``. Pure: the same key and state give the same result.
+    """One Gibbs sweep: the indicators in random order, then `sigma2`, `theta`, `v_s`
+    and `p0`. Pure: the same key and state give the same result.
 
     **Arguments:**
 
-    - ``key``: PRNG key.
-    - ``state``: the :class:`GibbsState` before the sweep.
-    - ``stats``: :class:`SuffStats` (standardised: :func:`standardize`).
-    - ``prior``: the :class:`SpikeSlabPrior`.
-    - ``max_active``: static, default ``min(K, 32)``: the largest model; the sampler then
+    - `key`: PRNG key.
+    - `state`: the `GibbsState` before the sweep.
+    - `stats`: `SuffStats` (standardised: `standardize`).
+    - `prior`: the `SpikeSlabPrior`.
+    - `max_active`: static, default `min(K, 32)`: the largest model; the sampler then
       targets the prior truncated to models of at most that size.
-    - ``swap``: static; after the indicator sweep, one Metropolis-Hastings exchange of an
-      active term for a correlated inactive one (:func:`_swap`); False: the plain Gibbs sweep.
+    - `swap`: static; after the indicator sweep, one Metropolis-Hastings exchange of an
+      active term for a correlated inactive one (`_swap`); False: the plain Gibbs sweep.
 
-    **Returns:** ``(GibbsState, GibbsInfo)`` after the sweep.
+    **Returns:** `(state, info)`: the `GibbsState` after the sweep and its `GibbsInfo`
+    (`num_active` and `log_marginal`, both `()`).
     """
     k_ind, k_gamma, k_theta = jax.random.split(key, 3)
     K = stats.gram.shape[0]
@@ -528,18 +567,39 @@ def run_chain(
     max_active: int | None = None,
     swap: bool = True,
 ) -> tuple[GibbsState, GibbsTrace]:
-    """``num_steps`` sweeps of :func:`step` under ``lax.scan``.
+    """`num_steps` sweeps of `step` under `lax.scan`.
 
-    **Arguments:** ``key``, ``state``, ``stats``, ``prior``, ``max_active``, ``swap`` as in
-    :func:`step`; ``num_steps`` (static) the number of sweeps.
+    **Arguments:**
 
-    **Returns:** ``(last GibbsState, GibbsTrace)``, the trace's leading axis ``num_steps``.
+    - `key`: PRNG key, split into one key per sweep.
+    - `state`: the starting `GibbsState`.
+    - `stats`: `SuffStats` (standardised), as in `step`.
+    - `num_steps`: static, the number of sweeps.
+    - `prior`: the `SpikeSlabPrior`, as in `step`.
+    - `max_active`: static, the largest model, as in `step`.
+    - `swap`: static, the exchange move, as in `step`.
+
+    **Returns:** `(state, trace)`: the last `GibbsState` and the `GibbsTrace` of every sweep,
+    leading axis `num_steps`.
     """
     return run_keys(jax.random.split(key, num_steps), state, stats, prior, max_active, swap)
 
 
 def run_keys(keys, state, stats, prior, max_active=None, swap=True):
-    """Like :func:`run_chain` but from explicit per-step keys."""
+    """Like `run_chain` but from explicit per-step keys.
+
+    **Arguments:**
+
+    - `keys`: one PRNG key per sweep, leading axis `num_steps` (as `jax.random.split` gives them).
+    - `state`: the starting `GibbsState`.
+    - `stats`: `SuffStats` (standardised), as in `step`.
+    - `prior`: the `SpikeSlabPrior`, as in `step`.
+    - `max_active`: static, the largest model (default None: `min(K, 32)`), as in `step`.
+    - `swap`: static, the exchange move (default True), as in `step`.
+
+    **Returns:** `(state, trace)`: the last `GibbsState` and the `GibbsTrace` of every sweep,
+    leading axis `num_steps`.
+    """
 
     def one(state, key):
         state, info = step(key, state, stats, prior, max_active, swap)

@@ -1,7 +1,7 @@
 """Where the chains start: the greedy forward selection and the dispersed starts.
 
-Chains that all start in one mode cannot reveal a second one. :func:`initial_indicators`
-starts chain 0 from a greedy forward selection (:func:`greedy_indicators`) and the others from
+Chains that all start in one mode cannot reveal a second one. `initial_indicators`
+starts chain 0 from a greedy forward selection (`greedy_indicators`) and the others from
 greedy selections among random halves of the library: a posterior with several modes then
 shows up as chains that disagree (per-chain PIPs, R-hat).
 """
@@ -25,21 +25,24 @@ __all__ = ["greedy_indicators", "initial_indicators", "starting_states"]
 
 
 def greedy_indicators(stats: SuffStats, prior: SpikeSlabPrior, p0, v_s, R, allowed=None):
-    """Forward selection on the collapsed posterior of gamma at fixed ``p0`` and ``v_s``.
+    """Forward selection on the collapsed posterior of `gamma` at fixed `p0` and `v_s`.
 
     Starting from the empty model, add the term whose inclusion most increases
-    ``log p(y | gamma, v_s) + log p(gamma | p0)`` until no addition helps. This replaces the
+    `log p(y | gamma, v_s) + log p(gamma | p0)` until no addition helps. This replaces the
     paper's least-squares initialisation (Algorithm 1, steps 2-3), which breaks down when the
     library is nearly collinear (K close to N, or exp/sin next to polynomials).
 
     **Arguments:**
 
-    - ``stats``: :class:`SuffStats` (standardised), ``prior``: the :class:`SpikeSlabPrior`.
-    - ``p0``, ``v_s``: the inclusion probability and slab variance held fixed.
-    - ``R``: the largest model (may be traced).
-    - ``allowed``: ``(K,)`` bool, the candidates (default: every term; zero columns never).
+    - `stats`: `SuffStats` (standardised).
+    - `prior`: the `SpikeSlabPrior`.
+    - `p0`: the inclusion probability, held fixed, `()`.
+    - `v_s`: the slab variance (relative to `sigma2`), held fixed, `()`.
+    - `R`: the largest model (may be traced).
+    - `allowed`: `(K,)` bool, the candidates, or None (default) for every term; zero columns
+      never.
 
-    **Returns:** ``(K,)`` bool indicators.
+    **Returns:** `(K,)` bool indicators.
     """
     K = stats.gram.shape[0]
     G, b = stats.gram, stats.xty
@@ -96,30 +99,39 @@ def initial_indicators(
     max_active: int | None = None,
     strategy: str = "dispersed",
 ) -> jax.Array:
-    """Starting indicators of ``num_chains`` chains.
+    """Starting indicators of `num_chains` chains.
 
-    **Arguments:** ``key`` (PRNG key for the random choices), ``stats`` (standardised
-    :class:`SuffStats`), ``num_chains`` (static), ``prior``, ``p0``, ``v_s``, ``max_active``
-    as in :func:`~dtwin_jax.sampler.kernel.init`, and ``strategy`` below.
-
-    **Returns:** ``(num_chains, K)`` bool.
-
-    Every strategy starts chain 0 from the greedy forward selection (as :func:`init`).
+    Every strategy starts chain 0 from the greedy forward selection (as `init`).
     Chains c >= 1:
 
-    * ``"dispersed"``: the greedy selection, of at most ``max(1, R // 4)`` terms
-      (``R = max_active``), among a random half of the library (each term kept with
+    - `"dispersed"`: the greedy selection, of at most `max(1, R // 4)` terms
+      (`R = max_active`), among a random half of the library (each term kept with
       probability 1/2). Where the best model's terms are left out, the chain starts at the
       best model made of the others: a locally good alternative, the kind of second mode a
       single greedy start hides.
-    * ``"random"``: chain 1 the empty model, chains c >= 2 a uniformly random subset of size
-      uniform on ``1..min(R, K // 2)``. On large collinear libraries the first sweeps from
-      such a start can fill the model up to the cap ``R`` with poor terms, where it stays
-      (the sweep only adds below the cap): on example 2 (K = 258) 1 in 18 chains from the
-      empty model and 3 in 24 from random subsets were still there after 1500 sweeps.
-    * ``"greedy"``: the greedy selection for every chain.
+    - `"random"`: chain 1 the empty model, chains c >= 2 a uniformly random subset of size
+      uniform on `1..min(R, K // 2)`. On large collinear libraries the first sweeps from
+      such a start can fill the model up to the cap `R` with poor terms, where it stays
+      (the sweep only adds below the cap): on example 2's 258-term library some chains from
+      the empty model and from random subsets were still there after many sweeps.
+    - `"greedy"`: the greedy selection for every chain.
 
     Pure and jittable. The caps count terms, not the zero columns a driver pads with.
+
+    **Arguments:**
+
+    - `key`: PRNG key for the random choices.
+    - `stats`: standardised `SuffStats`.
+    - `num_chains`: static, the number of chains.
+    - `prior`: the `SpikeSlabPrior`.
+    - `p0`: the inclusion probability held fixed in the greedy selections (default 0.1), as in
+      `dtwin_jax.sampler.kernel.init`.
+    - `v_s`: the slab variance held fixed there (default 10), as in `init`.
+    - `max_active`: the largest model `R` (default None: `min(K, 32)`), as in `init`.
+    - `strategy`: `"dispersed"` (default), `"random"` or `"greedy"` (above); any other raises
+      `ValueError`.
+
+    **Returns:** `(num_chains, K)` bool starting indicators.
     """
     if strategy not in ("dispersed", "random", "greedy"):
         raise ValueError(f"unknown init_strategy {strategy!r} (dispersed, random or greedy)")
@@ -159,13 +171,21 @@ def initial_indicators(
 
 
 def starting_states(key, scaled, prior, p0, v_s, max_active, num_chains, init_strategy) -> GibbsState:
-    """The chains' starting states: :func:`initial_indicators`, then
-    :func:`~dtwin_jax.sampler.kernel.init` for each.
+    """The chains' starting states: `initial_indicators`, then
+    `dtwin_jax.sampler.kernel.init` for each.
 
-    **Arguments:** as :func:`initial_indicators` (``scaled``: the standardised statistics;
-    ``init_strategy``: its ``strategy``).
+    **Arguments:**
 
-    **Returns:** :class:`GibbsState` with leading axis ``num_chains``.
+    - `key`: PRNG key; the starts draw from a key folded off it.
+    - `scaled`: the standardised `SuffStats`.
+    - `prior`: the `SpikeSlabPrior`.
+    - `p0`: the starting inclusion probability, as in `initial_indicators`.
+    - `v_s`: the starting slab variance, as in `initial_indicators`.
+    - `max_active`: the largest model, or None, as in `initial_indicators`.
+    - `num_chains`: static, the number of chains.
+    - `init_strategy`: `initial_indicators`' `strategy`.
+
+    **Returns:** `GibbsState` with leading axis `num_chains`.
     """
     # The starting states draw from a key folded off ``key``, so the chains' own keys (and
     # with ``init_strategy="greedy"`` the draws) are those of a greedy-only sampler.

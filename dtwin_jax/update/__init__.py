@@ -9,10 +9,10 @@ frameworks share. Data flows one way:
       -> posterior per equation -> updated twin         update.result (UpdateResult.twin)
       -> (optional: coefficients refined by output error)  input_output.output_error
 
-Framework 1, :func:`update_input_output` (:mod:`dtwin_jax.input_output`): states, inputs and
-rates measured. Framework 2, :func:`update_output_only` (:mod:`dtwin_jax.output_only`): the
-response alone. Both return an :class:`UpdateResult` (``result``), which a later update takes
-as ``previous`` (``lifecycle``) and :mod:`dtwin_jax.io.store` saves and loads.
+Framework 1, `update_input_output` (`dtwin_jax.input_output`): states, inputs and
+rates measured. Framework 2, `update_output_only` (`dtwin_jax.output_only`): the
+response alone. Both return an `UpdateResult` (`result`), which a later update takes
+as `previous` (`lifecycle`) and `dtwin_jax.io.store` saves and loads.
 """
 
 import importlib

@@ -1,4 +1,4 @@
-"""One update from a measurement dictionary (``dtwin_jax.io.load_measurements``): the
+"""One update from a measurement dictionary (`dtwin_jax.io.load_measurements`): the
 framework's entry point chosen by the mode and the sensor layout, shared by the command line
 and the monitor."""
 
@@ -11,21 +11,29 @@ __all__ = ["update_from_data"]
 
 def update_from_data(mode: str, nominal, data: dict, *, library, diffusion_library=None, smoothing="auto",
                      refine: bool = False, source: str = "the data", **common):
-    """Update ``nominal`` from ``data`` in ``mode``.
+    """Update `nominal` from `data` in `mode`.
+
+    Calls `update_input_output` or `update_output_only`. A layout the mode cannot use is a
+    one-line `DataError`.
 
     **Arguments:**
 
-    - ``mode``: ``"input-output"`` or ``"output-only"``.
-    - ``nominal``: the nominal model.
-    - ``data``: ``t``, ``x`` and optional ``u``, ``xdot``, ``x_names``, ``xdot_names``,
-      ``u_interpolation``, ``reference``, as :func:`dtwin_jax.io.load_measurements` returns them.
-    - ``library``, ``diffusion_library``, ``smoothing``, ``refine``: as the update functions'.
-    - ``source``: how a message names the data (a file name).
-    - ``common``: ``pip_threshold``, ``settings``, ``seed``, ``progress``, ``previous``,
-      ``forget``, ``allow_repeat``.
+    - `mode`: `"input-output"` or `"output-only"`.
+    - `nominal`: the nominal model, a `dtwin_jax.models.systems.LinearSecondOrder`.
+    - `data`: `t`, `x` and optional `u`, `xdot`, `x_names`, `xdot_names`,
+      `u_interpolation`, `reference`, as `dtwin_jax.io.load_measurements` returns them
+      (`u` required for input-output).
+    - `library`: the (drift) library, a spec or a `Library`, as the update functions'.
+    - `diffusion_library`: output-only: the diffusion's library, as `update_output_only`'s;
+      None (default) its default.
+    - `smoothing`: input-output: as `update_input_output`'s (default `"auto"`).
+    - `refine`: input-output: refine by output error, as `update_input_output`'s (output-only
+      refuses True).
+    - `source`: how a message names the data (a file name).
+    - `**common`: `pip_threshold`, `settings`, `seed`, `progress`, `previous`,
+      `forget`, `allow_repeat`, passed to the update function.
 
-    **Returns:** the :class:`~dtwin_jax.update.UpdateResult`. A layout the mode cannot use is
-    a one-line :class:`DataError`.
+    **Returns:** the `dtwin_jax.update.UpdateResult`.
     """
     if mode == "output-only":
         if refine:

@@ -1,9 +1,9 @@
 """A twin's lifecycle across updates: a re-update checks that it continues the previous one
 (same mode, nominal model and library), adds the previous update's sufficient statistics
-to the new data's (the previous posterior as the prior, old data discounted by ``forget``)
+to the new data's (the previous posterior as the prior, old data discounted by `forget`)
 and appends an entry to the history that the result carries. Each entry keeps the window's
-fingerprint (:func:`window_fingerprint`), so a window already in the history is refused
-(:func:`check_repeat`): its data would count twice."""
+fingerprint (`window_fingerprint`), so a window already in the history is refused
+(`check_repeat`): its data would count twice."""
 
 from __future__ import annotations
 
@@ -22,9 +22,22 @@ __all__ = ["arrays_sha256", "check_previous", "check_repeat", "window_fingerprin
 
 
 def with_previous(stats: sampler.SuffStats, kind: str, previous, forget: float) -> sampler.SuffStats:
-    """``stats`` plus ``forget`` times the previous update's of the same ``kind``: for the
-    conjugate part of the model the posterior after both data windows, so the previous
-    posterior serves as the prior (``forget < 1`` discounts old data, for a system that drifts)."""
+    """`stats` plus `forget` times the previous update's of the same `kind`.
+
+    For the conjugate part of the model this is the posterior after both data windows, so the
+    previous posterior serves as the prior (`forget < 1` discounts old data, for a system that
+    drifts).
+
+    **Arguments:**
+
+    - `stats`: this window's `SuffStats`, batched over the equations, physical units.
+    - `kind`: `"drift"` or `"diffusion"`, the statistics of `previous` to add.
+    - `previous`: the previous `UpdateResult`, or None (then `stats` is returned as is); one
+      without statistics of that `kind` raises `DataError`.
+    - `forget`: the previous statistics' weight, in `[0, 1]`.
+
+    **Returns:** the combined `SuffStats`, same shapes as `stats`.
+    """
     if previous is None:
         return stats
     old = previous.statistics.get(kind)
@@ -35,8 +48,17 @@ def with_previous(stats: sampler.SuffStats, kind: str, previous, forget: float) 
 
 
 def check_previous(previous, mode: str, nominal: LinearSecondOrder, lib: Library, forget: float) -> None:
-    """Raise `DataError` unless ``previous`` (an :class:`UpdateResult` or None) can be
-    continued by a ``mode`` update of ``nominal`` with library ``lib``."""
+    """Raise `DataError` unless `previous` can be continued by a `mode` update of `nominal`
+    with library `lib`.
+
+    **Arguments:**
+
+    - `previous`: the previous `UpdateResult`, or None (nothing to check).
+    - `mode`: `"input-output"` or `"output-only"`; must be the previous update's.
+    - `nominal`: the nominal `LinearSecondOrder`; must equal the previous one.
+    - `lib`: the `Library`; its term names must be the previous one's.
+    - `forget`: the previous statistics' weight; must be in `[0, 1]`.
+    """
     if previous is None:
         return
     if not 0.0 <= forget <= 1.0:
@@ -53,8 +75,16 @@ def check_previous(previous, mode: str, nominal: LinearSecondOrder, lib: Library
 
 
 def arrays_sha256(arrays: dict, extra: str = "") -> str:
-    """SHA-256 (hex) of named arrays as float64 bytes with their shapes (None counts as
-    absent), then ``extra``: equal for the same data read again."""
+    """SHA-256 (hex) of named arrays as float64 bytes with their shapes, then `extra`: equal
+    for the same data read again.
+
+    **Arguments:**
+
+    - `arrays`: name -> array (any shape) or None (counts as absent), hashed in order.
+    - `extra`: a string hashed after them (default empty).
+
+    **Returns:** the hex digest, a 64-character string.
+    """
     h = hashlib.sha256()
     for name, a in arrays.items():
         if a is None:
@@ -68,13 +98,27 @@ def arrays_sha256(arrays: dict, extra: str = "") -> str:
 
 
 def window_fingerprint(rec: Records) -> str:
-    """SHA-256 (hex) of a window's ``t``, ``x``, ``u`` and ``xdot`` (:func:`arrays_sha256`)."""
+    """SHA-256 (hex) of a window's `t`, `x`, `u` and `xdot` (`arrays_sha256`).
+
+    **Arguments:**
+
+    - `rec`: the window's `Records`.
+
+    **Returns:** the hex digest, a 64-character string.
+    """
     return arrays_sha256({name: getattr(rec, name) for name in ("t", "x", "u", "xdot")})
 
 
 def check_repeat(previous, rec: Records, allow_repeat: bool = False) -> None:
-    """Raise `DataError` when the window ``rec`` is already in ``previous``'s history (its
-    data would count twice in the prior), unless ``allow_repeat``."""
+    """Raise `DataError` when the window `rec` is already in `previous`'s history (its
+    data would count twice in the prior), unless `allow_repeat`.
+
+    **Arguments:**
+
+    - `previous`: the previous `UpdateResult`, or None (nothing to check).
+    - `rec`: this window's `Records`.
+    - `allow_repeat`: take the window even if it is in the history (default False).
+    """
     if previous is None or allow_repeat:
         return
     fp = window_fingerprint(rec)
@@ -86,7 +130,21 @@ def check_repeat(previous, rec: Records, allow_repeat: bool = False) -> None:
 
 
 def updated_history(previous, mode: str, rec: Records, forget: float, equations, seconds: float) -> list[dict]:
-    """The previous update's history plus an entry for this one (``seconds`` of wall time)."""
+    """The previous update's history plus an entry for this one.
+
+    **Arguments:**
+
+    - `previous`: the previous `UpdateResult`, or None (a first update, prior spike-and-slab).
+    - `mode`: `"input-output"` or `"output-only"`.
+    - `rec`: this window's `Records`, `x (R, N, m)`.
+    - `forget`: the previous statistics' weight, recorded in the entry's prior.
+    - `equations`: this update's `EquationPosterior`s, recorded as equations.
+    - `seconds`: the update's wall time, s.
+
+    **Returns:** the history, a list of dicts oldest first; the new entry has `update`, `time`,
+    `mode`, `records`, `samples`, `window_s`, `prior`, `seconds`, `equations`, `dtwin_jax`
+    (the version) and `window_sha256`.
+    """
     from datetime import datetime, timezone
 
     from dtwin_jax import __version__

@@ -1,4 +1,4 @@
-"""What an update returns: the sampler's settings and the :class:`UpdateResult`, which holds
+"""What an update returns: the sampler's settings and the `UpdateResult`, which holds
 every regressed equation's posterior, the updated twin at their means, the run's
 diagnostics and warnings, the statistics a re-update adds to, and the update history; it
 serializes to the result file of formats.md and to arviz."""
@@ -50,7 +50,7 @@ class UpdateResult:
 
     @property
     def state_names(self) -> tuple[str, ...]:
-        """The nominal model's ``m`` state names."""
+        """The nominal model's `m` state names."""
         return self.nominal.state_names
 
     @property
@@ -62,8 +62,8 @@ class UpdateResult:
     def twin(self) -> UpdatedTwin:
         """The updated model at the posterior means of the selected terms (with the
         discovered diffusion for an output-only update); the terms of a reported collinearity
-        group enter as one (:func:`dtwin_jax.collinearity.group_coefficients`).
-        :func:`predict.posterior_twins` gives posterior draws of it."""
+        group enter as one (`dtwin_jax.collinearity.group_coefficients`).
+        `predict.posterior_twins` gives posterior draws of it."""
         drift = [e for e in self.equations if e.kind == "drift"]
         index = tuple(self.state_names.index(e.state) for e in drift)
         coef = twin_coefficients(drift, self.checks) if drift else np.zeros((0, self.library.K))
@@ -86,13 +86,12 @@ class UpdateResult:
     def diagnostics(self) -> dict:
         """Convergence over all equations and the run's settings.
 
-        **Returns:**
-
-        The ``diagnostics`` of the result file: ``chains``, ``draws``, ``burn_in``; the worst
-        R-hat of the coefficients (``rhat_max``) and of the inclusion indicators
-        (``rhat_gamma_max``), 4 decimals; the smallest bulk ESS (``ess_bulk_min``), a whole
-        number; the largest PIP disagreement between chains, overall and per equation,
-        4 decimals; ``seconds`` of wall time, 3 decimals. None where nothing is selected."""
+        **Returns:** the `diagnostics` dict of the result file: `chains`, `draws`, `burn_in`;
+        the worst R-hat of the coefficients (`rhat_max`) and of the inclusion indicators
+        (`rhat_gamma_max`), 4 decimals; the smallest bulk ESS (`ess_bulk_min`), a whole
+        number; the largest PIP disagreement between chains, overall and per equation
+        (`pip_chain_spread_max`, `pip_chain_spread`), 4 decimals; `seconds` of wall time,
+        3 decimals. None where nothing is selected."""
         rhat = np.concatenate([e.rhat() for e in self.equations] + [np.zeros(0)])
         ess = np.concatenate([e.ess_bulk() for e in self.equations] + [np.zeros(0)])
         rhat_g = np.concatenate([e.rhat_gamma() for e in self.equations] + [np.zeros(0)])
@@ -169,7 +168,7 @@ class UpdateResult:
         return "\n".join(lines)
 
     def to_arviz(self):
-        """All equations' draws in one arviz DataTree (variables ``theta_<state>`` etc.)."""
+        """All equations' draws in one arviz DataTree (variables `theta_<state>_<kind>` etc.)."""
         import arviz_base as az
 
         posterior, dims, coords = {}, {}, {}
