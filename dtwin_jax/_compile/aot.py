@@ -1,15 +1,16 @@
 """Traced programs kept on disk for new processes (the command line).
 
 JAX's persistent compilation cache lets a new process skip XLA compilation, not tracing and
-lowering: for a cold `dtwin-jax discover` of a 1 s window those took ~2 s of ~5 (the
-kinematic smoother's Newton noise fit, the sampler). `call` runs a jitted function
-through a serialized `jax.export` of it, kept in a folder that `enable` names
+lowering: for a cold `dtwin-jax discover` of a 1 s window those are a large part of its
+time (the kinematic smoother's Newton noise fit, the sampler; `docs/performance.md`).
+`call` runs a jitted function through a serialized `jax.export` of it, kept in a folder
+that `enable` names
 (`dtwin_jax.configure_runtime` names one beside its compilation cache, so the command
 line and the processes that opt in use it) and keyed by the function's name, the shapes and
 dtypes of its arguments, its static arguments, the platform it runs on (a program exported
 for the CPU fails on a GPU), the jax version and a digest of dtwin-jax's source. Otherwise,
 or inside another trace, it is a plain call: within one process an export only costs a
-second lowering (three of the test files ran in 240.2 s without it against 254.7 s with it).
+second lowering, which is why it is off unless a process opts in (the command line does).
 Programs with host callbacks (progress bars) cannot be exported, so equinox's run-time checks
 (`eqx.error_if`, in diffrax's solves) are traced for an export as NaN outputs instead of
 raised errors (callers of such programs already treat a non-finite result as a failure). A
@@ -40,8 +41,13 @@ _folder: Path | None = None
 
 
 def enable(folder: str | os.PathLike | None) -> None:
-    """Keep exported programs in `folder` (None: stop). Process set-up, as the compilation
-    cache is: `dtwin_jax.configure_runtime` calls it."""
+    """Keep exported programs in a folder. Process set-up, as the compilation cache is:
+    `dtwin_jax.configure_runtime` calls it.
+
+    **Arguments:**
+
+    - `folder`: the folder of the exported programs, or None to stop using one.
+    """
     global _folder
     _folder = None if folder is None else Path(folder)
 
@@ -52,9 +58,16 @@ def enabled() -> bool:
 
 
 def exported(name: str, static_argnums: tuple[int, ...] = ()) -> Callable:
-    """Decorate a jitted function so that its calls run through `call` under `name`;
-    the arguments at `static_argnums` are static (hashable; their `repr` is part of the
-    key)."""
+    """Decorate a jitted function so that its calls run through `call` under a name.
+
+    **Arguments:**
+
+    - `name`: the program's name in the folder's keys.
+    - `static_argnums`: the positions of the static arguments (hashable; their `repr` is
+      part of the key).
+
+    **Returns:** the decorator.
+    """
 
     def wrap(fn: Callable) -> Callable:
         @functools.wraps(fn)
@@ -74,10 +87,19 @@ def exported(name: str, static_argnums: tuple[int, ...] = ()) -> Callable:
 
 
 def call(name: str, fn: Callable, args: tuple, static: tuple = ()):
-    """`fn(*args)` through a disk-cached export. `args`: a pytree of arrays (its
-    structure is part of the key); `static`: hashable values that change the program
-    (their `repr` is part of the key); `fn` returns a pytree of arrays and of the
-    package's NamedTuples (`_register`)."""
+    """`fn(*args)` through a disk-cached export (a plain call when no folder is set or inside
+    another trace).
+
+    **Arguments:**
+
+    - `name`: the program's name in the folder's keys.
+    - `fn`: the function; it returns a pytree of arrays and of the package's NamedTuples
+      (`_register`).
+    - `args`: a tuple pytree of arrays (its structure is part of the key).
+    - `static`: hashable values that change the program (their `repr` is part of the key).
+
+    **Returns:** what `fn(*args)` returns.
+    """
     leaves, tree = jax.tree.flatten(args)
     folder = _folder
     if folder is None or any(isinstance(a, jax.core.Tracer) for a in leaves):

@@ -25,19 +25,42 @@ TABLE_BUCKETS = (4, 8) + BUCKETS
 
 
 def bucket(K: int, sizes: tuple[int, ...] = BUCKETS) -> int:
-    """The padded size of a K-term library: the first of `sizes` that holds it, else K."""
+    """The padded size of a `K`-term library: the first of `sizes` that holds it, else `K`.
+
+    **Arguments:**
+
+    - `K`: the library's number of terms.
+    - `sizes`: the size classes, increasing (default `BUCKETS`).
+
+    **Returns:** the padded size, an int.
+    """
     return next((b for b in sizes if K <= b), K)
 
 
 def active_slots(K: int) -> int:
-    """The default number of active-set slots for a `K`-term library (before padding):
-    the first of `SLOT_CLASSES` that holds it, at most 32."""
+    """The default number of active-set slots for a library (before padding): the first of
+    `SLOT_CLASSES` that holds it, at most 32.
+
+    **Arguments:**
+
+    - `K`: the library's real number of terms.
+
+    **Returns:** the number of slots, an int.
+    """
     return min(bucket(K, SLOT_CLASSES), SLOT_CLASSES[-1])
 
 
 def pad_stats(stats, size: int, xp=jnp):
-    """`SuffStats` with `size - K` zero columns appended (`xp`: `jax.numpy`, or
-    `numpy` on the host)."""
+    """Sufficient statistics with zero columns appended up to `size`.
+
+    **Arguments:**
+
+    - `stats`: a `SuffStats` of `K` columns (`gram (..., K, K)`, `xty (..., K)`).
+    - `size`: the padded number of columns, at least `K`.
+    - `xp`: the array module, `jax.numpy` (default) or `numpy` on the host.
+
+    **Returns:** the `SuffStats` with `size - K` zero columns (`stats` itself when `size == K`).
+    """
     extra = size - stats.gram.shape[-1]
     if extra == 0:
         return stats
@@ -47,6 +70,14 @@ def pad_stats(stats, size: int, xp=jnp):
 
 
 def unpad_trace(trace, K: int):
-    """A trace's `gamma` and `theta` cut back to the library's K columns."""
+    """A trace cut back to the library's columns.
+
+    **Arguments:**
+
+    - `trace`: a `GibbsTrace` of a padded library (`gamma`, `theta` with the padded size last).
+    - `K`: the library's real number of terms.
+
+    **Returns:** the trace with `gamma` and `theta` cut to their first `K` columns.
+    """
     return trace._replace(gamma=trace.gamma[..., :K], theta=trace.theta[..., :K])
 

@@ -1,11 +1,11 @@
 """Programs that run once per call for microseconds to milliseconds (a sampler's set-up, its
 per-sweep keys, the output-only first guesses) compile without LLVM's optimizations: about
-half the compilation, the same bits out in the cases measured, and runs 1.5x longer, which
-at their size nobody sees (docs/performance.md, compiling less). Long-running programs (the
-sampler's chunks, the filters, simulations) keep LLVM's optimizations: at level 0 they run
-2-10x longer. In a process that `dtwin_jax.configure_runtime` sets up for the CPU they
-compile at level 2 instead of XLA's 3 (`prefer_level_2`): the sampler's chunk 25% and
-the output-only drift statistics 13-23% sooner, and every program measured runs as fast."""
+half the compilation, the same bits out in the cases measured, and a longer run that at
+their size nobody sees. Long-running programs (the sampler's chunks, the filters,
+simulations) keep LLVM's optimizations: at level 0 they run several times longer. In a
+process that `dtwin_jax.configure_runtime` sets up for the CPU they compile at level 2
+instead of XLA's 3 (`prefer_level_2`): sooner, and every program measured runs as fast.
+The measurements are in `docs/performance.md` ("Compiling less")."""
 
 from __future__ import annotations
 
@@ -22,7 +22,14 @@ QUICK_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensiv
 def quick_jit(static_argnums=()):
     """`jax.jit` with `QUICK_COMPILE` for a call from Python; inside another trace
     (an export by `dtwin_jax._compile.aot`, a caller's jit or vmap) the plain function, which
-    that trace's program holds (JAX takes compiler options on top-level programs only)."""
+    that trace's program holds (JAX takes compiler options on top-level programs only).
+
+    **Arguments:**
+
+    - `static_argnums`: the positions of the static arguments, as for `jax.jit`.
+
+    **Returns:** the decorator.
+    """
 
     def wrap(fun):
         compiled = jax.jit(fun, static_argnums=static_argnums, compiler_options=QUICK_COMPILE)
