@@ -684,8 +684,8 @@ def console_main(argv=None) -> int:
     - `argv`: the command line's arguments after the program name, or None (default) for
       `sys.argv[1:]`.
 
-    **Returns:** the exit status, as `main` gives it (2 also for a bad `$DTWIN_JAX_PLATFORM`,
-    130 when interrupted while the runtime is set up).
+    **Returns:** the exit status, as `main` gives it (2 also for a bad `$DTWIN_JAX_PLATFORM` or
+    `$DTWIN_JAX_CORES`, 130 when interrupted while the runtime is set up).
     """
     argv = sys.argv[1:] if argv is None else argv
     args = _parser().parse_args(argv)  # --help and usage errors exit here, before JAX starts

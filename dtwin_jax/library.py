@@ -195,8 +195,8 @@ _POWER_SIZES = (3, 6)
 def term_table(lib: Library) -> TermTable:
     """A library's terms as a `TermTable`, padded to its size class.
 
-    The rows are padded to `buckets.TABLE_BUCKETS` (4, 8, 16, ... 256 rows, the library's own
-    size above them), the powers to 3, 6 or the largest exponent.
+    The rows are padded to `dtwin_jax._compile.buckets.TABLE_BUCKETS` (4, 8, 16, ... 256
+    rows, the library's own size above them), the powers to 3, 6 or the largest exponent.
 
     **Arguments:**
 

@@ -6,8 +6,8 @@ freedom (exact, and no LAPACK call in every stage of every simulation step, filt
 
 `expm` replaces `jax.scipy.linalg.expm` in the package: that one evaluates the
 Padé approximants of degrees 3, 5, 7, 9 and 13 as branches of one `lax.switch` and undoes
-the scaling in a 16-step scan of conditionals, which takes much longer to compile per call
-site than this one; the state-space and Kramers-Moyal programs hold several.
+the scaling in a 16-step scan of conditionals, which takes about twice as long to compile per
+call site as this one; the state-space and Kramers-Moyal programs hold several.
 """
 
 from __future__ import annotations

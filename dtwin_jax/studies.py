@@ -242,7 +242,7 @@ PILOT_WINDOW = 16
 
 def _diffusion_stats_one(example, lib, dlib, coef, x, level, key):
     """The diffusion's EM-target statistics of one noisy ensemble, by the same function as
-    `update_output_only` (`output_only_stats.diffusion_statistics`), given the
+    `update_output_only` (`dtwin_jax.output_only.stats.diffusion_statistics`), given the
     drift `coef (q, K)` (zero for unselected terms). Pure: mapped over a study's pairs."""
     nominal = example.system.nominal
     y = measurement.add_noise(key, x, level)  # the same noise as in the drift program

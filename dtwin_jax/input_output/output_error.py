@@ -63,8 +63,8 @@ def refine_output_error(result, t, x, u, *, x_names=None, x0=None, noise_std=Non
     **Returns:** a copy of `result` whose `refinement` dict holds the refined posterior (the
     terms, their mean and covariance, the fitted initial states, the noise std; used by
     `dtwin_jax.models.prediction.posterior_twins` and `result.twin`). Raises a `DataError` for a
-    twin that is not input-output or has no terms, for missing `x0` with some states measured,
-    and when the free run fails at the posterior mean."""
+    twin that is not input-output or has no terms, for a missing `x0` when only some states
+    are measured, and when the free run fails at the posterior mean."""
     if result.mode != "input-output":
         raise DataError("output-error refinement needs an input-output twin (its input is known)")
     nominal = result.nominal

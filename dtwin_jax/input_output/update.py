@@ -132,7 +132,7 @@ def update_input_output(
     - `previous`: an earlier update of the same twin (same nominal model and library),
       whose statistics, times `forget`, are added to this window's: its posterior is the
       prior; the history continues it.
-    - `forget`: the previous statistics' weight, in (0, 1].
+    - `forget`: the previous statistics' weight, in [0, 1] (default 1).
     - `allow_repeat`: take a window already in the history (its data would count twice).
     - `refine`: refine the selected terms' coefficients by output error on the same data
       (`dtwin_jax.update.refine_output_error`): a sharper twin for long free runs.

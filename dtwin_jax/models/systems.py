@@ -1032,7 +1032,8 @@ def simulate_example_sde(
     - `num_records`: `R`, the number of records (default 1).
     - `duration`: the record's length, s; None (default) for `example.duration`.
     - `dt`: the sample interval, s; None (default) for `example.dt`.
-    - `substeps`: solver steps per sample interval (default 4).
+    - `substeps`: solver steps per sample interval (default 4); with `accelerations`,
+      `max(1, substeps // 2)` per half interval (the same for an even `substeps`).
     - `accelerations`: also return what an accelerometer averaging over each sample's
       interval measures (the change of each velocity from half a step before the sample to
       half a step after it, over `dt`; the force is white, so its acceleration has no value

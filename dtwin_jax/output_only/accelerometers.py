@@ -95,12 +95,12 @@ def update_from_accelerometers(nominal: LinearSecondOrder, t, xdot, xdot_names, 
       selection runs use `dtwin_jax.output_only.stats.first_pass_settings` of it.
     - `seed`: the sampler's seed (also that of the states' error draws).
     - `progress`: show the stages and a bar of the sweeps.
-    - `previous`: an earlier output-only update from accelerometers alone (a constant
-      diffusion), or None: a re-update, whose drift statistics and constant diffusion's
-      pseudo-observations, times `forget`, are added to this window's
-      (`dtwin_jax.update.lifecycle.with_previous`). The states are this window's own (its
-      anchor selects from this window alone).
-    - `forget`: the previous statistics' weight, in (0, 1].
+    - `previous`: for a re-update, an earlier output-only update from accelerometers alone (a
+      constant diffusion), whose drift statistics and constant diffusion's pseudo-observations,
+      times `forget`, are added to this window's (`dtwin_jax.update.lifecycle.with_previous`);
+      None for a first update. The states are this window's own (its anchor selects from this
+      window alone).
+    - `forget`: the previous statistics' weight, in [0, 1].
     - `allow_repeat`: take a window already in the history (its data would count twice).
 
     **Returns:** an `UpdateResult` of mode `"output-only"`: one `drift` equation per

@@ -95,10 +95,10 @@ def update_output_only(
     - `settings`: the sampler's `SamplerSettings` (chains, draws, burn-in).
     - `seed`: the sampler's seed (the diffusion's equations take `seed + 1`).
     - `progress`: show the stages and a bar of the sweeps.
-    - `previous`: an earlier output-only update of the same twin (same nominal model and
-      libraries), or None: a re-update, as in `update_input_output`, whose drift and
-      diffusion statistics, times `forget`, are added to this window's.
-    - `forget`: the previous statistics' weight, in (0, 1].
+    - `previous`: for a re-update, as in `update_input_output`, an earlier output-only update
+      of the same twin (same nominal model and libraries), whose drift and diffusion
+      statistics, times `forget`, are added to this window's; None (default) for a first update.
+    - `forget`: the previous statistics' weight, in [0, 1] (default 1).
     - `allow_repeat`: take a window already in the history (its data would count twice).
 
     **Returns:** an `UpdateResult` of mode `"output-only"`: one `drift` equation

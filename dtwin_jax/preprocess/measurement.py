@@ -44,7 +44,8 @@ def add_noise(key: Array, signal: Float[Array, "... N c"], level, *, per_record:
     **Arguments:**
 
     - `key`: a JAX random key.
-    - `signal`: the clean signal, `(N,)`, `(N, c)` or `(R, N, c)` (time along axis `-2`).
+    - `signal`: the clean signal, `(N,)`, `(N, c)` or `(R, N, c)` (time along axis `-2`, or
+      the only axis of `(N,)`).
     - `level`: the noise-to-signal ratio in `[0, 1]` (checked unless traced); 0 returns
       `signal` unchanged.
     - `per_record`: True (default): the std per record. False: an ensemble's std is taken over

@@ -53,8 +53,9 @@ class SamplerSettings:
     - `prior`: the `dtwin_jax.sampler.kernel.SpikeSlabPrior` hyperparameters.
     - `p0`: the prior inclusion probability the chains start at (default 0.1).
     - `v_s`: the slab variance (relative to `sigma2`) the chains start at (default 10).
-    - `max_active`: the largest model; None (default): 16, 24 or 32 by the library's real K
-      (`dtwin_jax._compile.buckets.active_slots`), at most K. The prior is truncated there.
+    - `max_active`: the largest model; None (default): the first of 16, 24 or 32 that holds
+      the library's real K, else 32 (`dtwin_jax._compile.buckets.active_slots`). The prior is
+      truncated there.
     - `swap`: each sweep ends with an exchange move between correlated terms (default True).
     - `chain_method`: `"vectorized"` (vmap over chains) or `"sequential"` (`lax.map`);
       None picks vectorized on accelerators and sequential on CPU, where XLA runs the vmapped

@@ -63,7 +63,7 @@ class UpdateResult:
         """The updated model at the posterior means of the selected terms (with the
         discovered diffusion for an output-only update); the terms of a reported collinearity
         group enter as one (`dtwin_jax.collinearity.group_coefficients`).
-        `predict.posterior_twins` gives posterior draws of it."""
+        `dtwin_jax.models.prediction.posterior_twins` gives posterior draws of it."""
         drift = [e for e in self.equations if e.kind == "drift"]
         index = tuple(self.state_names.index(e.state) for e in drift)
         coef = twin_coefficients(drift, self.checks) if drift else np.zeros((0, self.library.K))
