@@ -32,7 +32,7 @@ def _run(tmp_path, data, nominal_text=NOMINAL, extra=()):
     (tmp_path / "nominal.toml").write_text(nominal_text)
     out = tmp_path / "result.json"
     argv = ["discover", str(tmp_path / "data.npz"), "--nominal", str(tmp_path / "nominal.toml"),
-            "--out", str(out), "--draws", "50", "--burn-in", "10", "--chains", "1", "--quiet", *extra]
+            "--out", str(out), "--draws", "50", "--burn-in", "10", "--chains", "2", "--quiet", *extra]
     return main(argv), out
 
 
@@ -118,7 +118,7 @@ def test_csv_input(tmp_path, capsys):
     (tmp_path / "data.csv").write_text("t,x1,x2,u1\n" + "\n".join(",".join(repr(float(v)) for v in r) for r in rows) + "\n")
     (tmp_path / "nominal.toml").write_text(NOMINAL)
     code = main(["discover", str(tmp_path / "data.csv"), "--nominal", str(tmp_path / "nominal.toml"),
-                 "--library", "poly:2,input", "--draws", "30", "--burn-in", "5", "--chains", "1", "--quiet"])
+                 "--library", "poly:2,input", "--draws", "30", "--burn-in", "5", "--chains", "2", "--quiet"])
     assert code == 0
     assert capsys.readouterr().out.startswith("x2:")
 
@@ -138,7 +138,7 @@ def test_demo_end_to_end(tmp_path, capsys):
     # tested above and in test_runtime_set_up_is_the_command_line_s_only).
     capsys.readouterr()
     assert main(["discover", str(out / "measurements.npz"), "--nominal", str(out / "nominal.toml"),
-                 "--library", "poly:3,input", "--draws", "200", "--burn-in", "100", "--chains", "1", "--quiet"]) == 0
+                 "--library", "poly:3,input", "--draws", "200", "--burn-in", "100", "--chains", "2", "--quiet"]) == 0
     assert "x1**3" in capsys.readouterr().out
 
 

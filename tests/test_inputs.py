@@ -23,7 +23,7 @@ from dtwin_jax.posterior import format_coefficient, format_equation
 from dtwin_jax.progress import Stages, draws_bars
 
 NOMINAL = "M = [[1.0]]\nC = [[2.0]]\nK = [[1000.0]]\nB = [[0.5]]\n"
-SHORT = ("--draws", "50", "--burn-in", "10", "--chains", "1", "--library", "poly:3,input")
+SHORT = ("--draws", "50", "--burn-in", "10", "--chains", "2", "--library", "poly:3,input")
 
 
 def _data(N=400, t0=0.0, seed=0):

@@ -102,7 +102,7 @@ def test_records_columns_and_edge_cases():
         choose_interpolation(np.ones(N))
 
 
-SHORT = SamplerSettings(num_chains=1, num_draws=200, num_burnin=100)
+SHORT = SamplerSettings(num_chains=2, num_draws=200, num_burnin=100)
 
 
 def _example1_update(**kwargs):

@@ -6,7 +6,7 @@ posterior, and its conditionals against their exact distributions.
   posterior mean and standard deviation of every ``theta * gamma`` and on the
   hyperparameters' posterior means, within 4 Monte Carlo standard errors (arviz's ESS-based
   MCSE), and so does the NumPy Algorithm 1 of benchmarks/algorithm1_numpy.py, the timing
-  baseline.
+  baseline (``pytest -m slow``: it checks a benchmark, not the package).
 * The model of benchmarks/numpyro_model.py (discrete indicators, ``DiscreteHMCGibbs(NUTS)``)
   agrees with both the same way, within 4 combined MCSEs of the two samplers (``pytest -m
   slow``: NUTS takes most of this file's time).
@@ -186,6 +186,7 @@ def test_numpyro_samples_the_same_posterior(gibbs, nuts):
         _agree(label, x, n, est, method)
 
 
+@pytest.mark.slow  # the benchmarks' NumPy baseline, not the package: the kernel above runs by default
 def test_algorithm1_baseline_matches_exact():
     """The NumPy Algorithm 1 that benchmarks/run.py times samples the same posterior."""
     L, y = _problem()

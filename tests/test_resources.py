@@ -25,7 +25,7 @@ from dtwin_jax.errors import DataError
 ROOT = Path(__file__).resolve().parents[1]
 NOMINAL = "M = [[1.0]]\nC = [[2.0]]\nK = [[1000.0]]\nB = [[0.5]]\n"
 NOMINAL_2DOF = "M = [[1.0, 0.0], [0.0, 1.0]]\nC = [[2.0, 0.0], [0.0, 2.0]]\nK = [[1000.0, 0.0], [0.0, 500.0]]\n"
-TINY = ["--draws", "50", "--burn-in", "10", "--chains", "1", "--quiet"]
+TINY = ["--draws", "50", "--burn-in", "10", "--chains", "2", "--quiet"]
 # A refusal costs at most this many times the command line's import floor (`import
 # dtwin_jax.cli`, which imports jax), measured in the same test: CPU time stretches with the load.
 MAX_OVER_FLOOR, MAX_RSS_MB = 1.5, 500

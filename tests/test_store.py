@@ -277,7 +277,7 @@ def test_concurrent_python_saves_under_the_lock_lose_nothing(saved, tmp_path):
 def test_two_update_processes_keep_both_windows(saved, tmp_path):
     twin = _copy(saved, tmp_path)
     cmd = [sys.executable, "-m", "dtwin_jax.cli", "update", str(twin)]
-    quick = ["--chains", "1", "--draws", "100", "--burn-in", "50", "--quiet"]
+    quick = ["--chains", "2", "--draws", "100", "--burn-in", "50", "--quiet"]
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     procs = [subprocess.Popen(cmd + [str(saved / w)] + quick, env=env, stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True) for w in ("w2.npz", "w3.npz")]

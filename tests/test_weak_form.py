@@ -98,7 +98,7 @@ def test_weak_route_duffing_at_5_percent_noise():
 def test_default_route_without_rates_is_the_weak_form():
     ex = systems.example1()
     sim = systems.simulate_example(ex, jax.random.key(0), duration=0.5)
-    short = SamplerSettings(num_chains=1, num_draws=50, num_burnin=10)
+    short = SamplerSettings(num_chains=2, num_draws=50, num_burnin=10)
     args = (ex.system.nominal, sim["t"], sim["x"], sim["u"])
     res = update_input_output(*args, library="poly:2,input", settings=short)
     assert res.preprocessing["smoothing"] == "weak"
