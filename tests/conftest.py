@@ -31,6 +31,8 @@ prefer_level_2()
 import jax  # noqa: E402
 
 PASSES_OFF = os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] not in ("0", "false")
+# DTWIN_TEST_IGNORE_OPTIMIZED=1: the marker `optimized` changes nothing (to measure what it saves).
+IGNORE_OPTIMIZED = os.environ.get("DTWIN_TEST_IGNORE_OPTIMIZED") == "1"
 jax.config.update("jax_disable_most_optimizations", PASSES_OFF)
 
 _cache = os.environ.get("DTWIN_TEST_JAX_CACHE", os.path.join(os.path.dirname(__file__), "..", ".pytest_cache", "jax"))
@@ -51,7 +53,7 @@ def pytest_runtest_protocol(item, nextitem):
     compiles with XLA's passes on, setup and teardown included (a module's fixtures are set up
     by its first test); its subprocesses too. JAX's in-memory caches ignore the flag, so a
     program compiled before keeps the passes it was compiled with."""
-    if item.get_closest_marker("optimized") is None:
+    if item.get_closest_marker("optimized") is None or IGNORE_OPTIMIZED:
         return (yield)
     os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "0"
     jax.config.update("jax_disable_most_optimizations", False)
