@@ -6,9 +6,9 @@ executes: line coverage with one context per test, against each test's time.
         --cov-config=COVRC --cov-report= > DURATIONS.txt
     python benchmarks/suite_coverage.py .coverage DURATIONS.txt [--min-seconds 4]
 
-``COVRC`` holds ``[run] parallel = true`` and ``patch = subprocess`` (lines run by the
-processes a test starts are measured too, without its context). ``ctrace``: the default
-``sysmon`` core does not record per-test contexts. Tests in order of time, longest first:
+`COVRC` holds `[run] parallel = true` and `patch = subprocess` (lines run by the
+processes a test starts are measured too, without its context). `ctrace`: the default
+`sysmon` core does not record per-test contexts. Tests in order of time, longest first:
 each is dropped when every line it executes is executed by a test still kept; what it
 executes alone is printed beside it. A test with no line of its own may still be the only
 check of what it asserts (an accuracy, an equality, a rate), and a test that starts processes
@@ -36,10 +36,11 @@ def _lines(path: str) -> dict:
 def _durations(path: str) -> dict:
     """Each test's setup, call and teardown seconds, summed, from pytest's `--durations=0`."""
     seconds = collections.defaultdict(float)
-    for line in open(path):
-        m = re.match(r"^([0-9.]+)s (call|setup|teardown)\s+(\S+)", line)
-        if m:
-            seconds[m.group(3)] += float(m.group(1))
+    with open(path) as f:
+        for line in f:
+            m = re.match(r"^([0-9.]+)s (call|setup|teardown)\s+(\S+)", line)
+            if m:
+                seconds[m.group(3)] += float(m.group(1))
     return seconds
 
 
