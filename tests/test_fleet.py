@@ -1,6 +1,7 @@
 """Fleets (issue 28): eight structures' windows tested and absorbed by one program; the
-same program sharded over 8 virtual CPU devices in two processes (jax.distributed) gives the
-same alarms, inclusion probabilities and draws, and the same numbers to rounding."""
+same program sharded over 8 virtual CPU devices, in one process and (``pytest -m slow``) in
+two processes joined by jax.distributed, gives the same alarms, inclusion probabilities and
+draws, and the same numbers to rounding."""
 
 import os
 import socket
@@ -85,12 +86,7 @@ def _sharded(src, out_dir, processes):
     return {leaf: np.concatenate([a for _, a in sorted(parts, key=lambda p: p[0])]) for leaf, parts in shards.items()}
 
 
-def test_sharded_over_eight_devices_in_two_processes_equals_one_device(fleet, tmp_path):
-    """8 virtual CPU devices, 4 in each of two processes joined by jax.distributed on
-    localhost (``_sharded(src, tmp_path, 1)`` runs the 8 in one process: the same numbers,
-    left out of the suite for its time)."""
-    _, runs, src = fleet
-    sharded = _sharded(src, tmp_path, 2)
+def _assert_sharded_equals_plain(runs, sharded):
     for w, run in enumerate(runs):
         for i, (a, name) in enumerate(zip(jax.tree.leaves(run), _names(run))):
             b, a = sharded[f"w{w}_{i}"], np.asarray(a)
@@ -98,6 +94,20 @@ def test_sharded_over_eight_devices_in_two_processes_equals_one_device(fleet, tm
                 assert np.array_equal(a, b), (w, name)
             else:  # the same arithmetic compiled for another batch: rounding apart
                 np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-12, err_msg=f"window {w}, {name}")
+
+
+def test_sharded_over_eight_devices_in_one_process_equals_one_device(fleet, tmp_path):
+    """8 virtual CPU devices in one process: the sharded program's numbers are the plain one's."""
+    _, runs, src = fleet
+    _assert_sharded_equals_plain(runs, _sharded(src, tmp_path, 1))
+
+
+@pytest.mark.slow  # both processes compile the sharded program: twice the one-process test's time
+def test_sharded_over_eight_devices_in_two_processes_equals_one_device(fleet, tmp_path):
+    """8 virtual CPU devices, 4 in each of two processes joined by jax.distributed on
+    localhost."""
+    _, runs, src = fleet
+    _assert_sharded_equals_plain(runs, _sharded(src, tmp_path, 2))
 
 
 def _names(run):
