@@ -124,19 +124,17 @@ def test_csv_input(tmp_path, capsys):
 
 
 def test_demo_end_to_end(tmp_path, capsys):
+    # In this process, as the next call: the command's own process set-up is tested in
+    # test_runtime_set_up_is_the_command_line_s_only, and a process of its own would compile
+    # every program again (under the command line's compiler flags).
     out = tmp_path / "demo"
-    proc = subprocess.run(
-        [sys.executable, "-m", "dtwin_jax.cli", "demo", "--out-dir", str(out), "--draws", "300", "--burn-in", "100", "--chains", "2"],
-        capture_output=True, text=True, timeout=600,
-    )
-    assert proc.returncode == 0, proc.stderr
-    assert "x2: -" in proc.stdout and "x1**3" in proc.stdout
+    assert main(["demo", "--out-dir", str(out), "--draws", "300", "--burn-in", "100", "--chains", "2"]) == 0
+    stdout = capsys.readouterr().out
+    assert "x2: -" in stdout and "x1**3" in stdout
     doc = json.loads((out / "result.json").read_text())
     assert [t["expr"] for t in doc["equations"][0]["terms"]] == ["x1**3"]
     assert (out / "pip.png").stat().st_size > 10_000
-    # The demo's own files feed `discover` (in this process: the command's own set-up is
-    # tested above and in test_runtime_set_up_is_the_command_line_s_only).
-    capsys.readouterr()
+    # The demo's own files feed `discover`.
     assert main(["discover", str(out / "measurements.npz"), "--nominal", str(out / "nominal.toml"),
                  "--library", "poly:3,input", "--draws", "200", "--burn-in", "100", "--chains", "2", "--quiet"]) == 0
     assert "x1**3" in capsys.readouterr().out
